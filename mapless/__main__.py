@@ -1,0 +1,5 @@
+import sys
+
+from mapless.cli import main
+
+sys.exit(main())

@@ -1,0 +1,23 @@
+"""Errors a user can act on: every message names the bad value and the valid choices."""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+
+
+class MaplessError(Exception):
+    """Base class of errors caused by bad input (names, configs, files); the CLI prints them cleanly."""
+
+
+class UnknownNameError(MaplessError, KeyError):
+    def __init__(self, kind: str, name: str, valid: Iterable[str]):
+        valid = list(valid)
+        close = difflib.get_close_matches(str(name), valid, n=3)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        shown = ", ".join(valid[:40]) + (" ..." if len(valid) > 40 else "")
+        super().__init__(f"unknown {kind} {name!r}.{hint} Valid {kind}s: {shown}")
+        self.kind, self.name, self.valid = kind, name, valid
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return self.args[0]

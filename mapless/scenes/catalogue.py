@@ -1,0 +1,77 @@
+"""Names, room types and splits of the 120 iTHOR floor plans.
+
+Room type r in {kitchen, living_room, bedroom, bathroom} owns FloorPlan{100*i + n}, n = 1..30
+(kitchens have no hundreds digit). Splits (allenact/rearrangement convention):
+``train`` = n 1-20, ``val`` = n 21-25, ``test`` = n 26-30. The ``paper`` protocol evaluates on
+n 21-30, as the paper (and MJOLNIR) did; it is labelled as such wherever it is reported.
+"""
+
+from __future__ import annotations
+
+from mapless.errors import UnknownNameError
+
+ROOM_TYPES: tuple[str, ...] = ("kitchen", "living_room", "bedroom", "bathroom")
+SPLITS: dict[str, range] = {
+    "train": range(1, 21),
+    "val": range(21, 26),
+    "test": range(26, 31),
+    "paper": range(21, 31),
+    "all": range(1, 31),
+}
+_ROOM_OFFSET = {"kitchen": 0, "living_room": 200, "bedroom": 300, "bathroom": 400}
+
+
+def scene_name(room_type: str, index: int) -> str:
+    return f"FloorPlan{_ROOM_OFFSET[room_type] + index}"
+
+
+def _number(scene: str) -> int:
+    if not scene.startswith("FloorPlan"):
+        raise UnknownNameError("scene", scene, scene_names("all"))
+    digits = scene[len("FloorPlan") :].removesuffix("_physics")
+    if not digits.isdigit():
+        raise UnknownNameError("scene", scene, scene_names("all"))
+    number = int(digits)
+    hundreds, index = divmod(number, 100)
+    if index < 1 or index > 30 or hundreds not in (0, 2, 3, 4):
+        raise UnknownNameError("scene", scene, scene_names("all"))
+    return number
+
+
+def canonical_scene(scene: str) -> str:
+    """``FloorPlan28_physics`` -> ``FloorPlan28``; raises on names outside the 120 floor plans."""
+    return f"FloorPlan{_number(scene)}"
+
+
+def room_type_of(scene: str) -> str:
+    return {0: "kitchen", 2: "living_room", 3: "bedroom", 4: "bathroom"}[_number(scene) // 100]
+
+
+def split_of(scene: str) -> str:
+    index = _number(scene) % 100
+    return next(s for s in ("train", "val", "test") if index in SPLITS[s])
+
+
+def scene_names(split: str = "all", room_types: tuple[str, ...] | list[str] = ROOM_TYPES) -> list[str]:
+    """Floor plans of a split, room type by room type in ``ROOM_TYPES`` order."""
+    if split not in SPLITS:
+        raise UnknownNameError("split", split, SPLITS)
+    for room in room_types:
+        if room not in ROOM_TYPES:
+            raise UnknownNameError("room type", room, ROOM_TYPES)
+    return [scene_name(room, i) for room in room_types for i in SPLITS[split]]
+
+
+def resolve_scenes(spec: str | list[str]) -> list[str]:
+    """Scene selection from a CLI/config spec: a split name, ``split:room``, or explicit names."""
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    names: list[str] = []
+    for item in (s.strip() for s in items):
+        if not item:
+            continue
+        if item.startswith("FloorPlan"):
+            names.append(canonical_scene(item))
+        else:
+            split, _, room = item.partition(":")
+            names.extend(scene_names(split, (room,) if room else ROOM_TYPES))
+    return names
