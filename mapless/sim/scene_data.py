@@ -1,0 +1,130 @@
+"""``SceneData``: everything an episode step needs, precomputed per scene and indexed by pose id.
+
+It is the one interface between scene backends (the built-in geometric simulator, a SAVN/MJOLNIR
+offline folder, a live AI2-THOR scrape) and everything downstream (environments, evaluation,
+export). An episode step is array indexing into it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+ACTIONS: tuple[str, ...] = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
+MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
+N_MOVEMENT_ACTIONS = 5
+GRID_SIZE = 0.25
+
+
+def pose_key(x: float, z: float, yaw: int, horizon: int) -> str:
+    """SAVN/MJOLNIR pose key ``"x|z|rotation|horizon"`` (two decimals; ``-0.00`` kept as Python prints it)."""
+    return f"{x:.2f}|{z:.2f}|{int(yaw)}|{int(horizon)}"
+
+
+@dataclass
+class SceneData:
+    """Per-pose arrays of one scene.
+
+    Poses: ``x``, ``z`` (m), ``yaw`` (deg, clockwise from +z), ``horizon`` (deg, positive = down).
+    ``successors[p, a]`` is the pose after movement action ``a`` (0-4) or ``p`` itself when the
+    action fails. In-view instances are stored in CSR form: the entries of pose ``p`` are
+    ``view_ptr[p]:view_ptr[p+1]`` of ``view_instance`` (index into ``instance_ids``), ``view_box``
+    (occlusion-aware 2-D box ``x1, y1, x2, y2`` in pixels of the 300x300 frame), ``view_distance``
+    (m, the rule's distance) and ``view_visible`` (the success rule: in view, not in a closed
+    receptacle, within the visibility distance).
+    ``context[p]`` is ``[C, 4]`` (docs/observations.md); ``features[p]`` is ``[F, 7, 7]`` stored as
+    ``features_dtype`` and multiplied by ``feature_scale`` when read.
+    """
+
+    scene: str
+    room_type: str
+    x: np.ndarray
+    z: np.ndarray
+    yaw: np.ndarray
+    horizon: np.ndarray
+    successors: np.ndarray
+    instance_ids: tuple[str, ...]
+    instance_types: tuple[str, ...]
+    view_ptr: np.ndarray
+    view_instance: np.ndarray
+    view_box: np.ndarray
+    view_distance: np.ndarray
+    view_visible: np.ndarray
+    context: np.ndarray
+    features: np.ndarray
+    feature_scale: float = 1.0 / 255.0
+    meta: dict = field(default_factory=dict)
+    _distance_cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.x)
+
+    @functools.cached_property
+    def pose_index(self) -> dict[str, int]:
+        return {self.key(p): p for p in range(self.n_poses)}
+
+    def key(self, pose: int) -> str:
+        return pose_key(self.x[pose], self.z[pose], self.yaw[pose], self.horizon[pose])
+
+    def in_view(self, pose: int) -> np.ndarray:
+        return self.view_instance[self.view_ptr[pose] : self.view_ptr[pose + 1]]
+
+    def visible(self, pose: int) -> np.ndarray:
+        s = slice(self.view_ptr[pose], self.view_ptr[pose + 1])
+        return self.view_instance[s][self.view_visible[s]]
+
+    def instances_of(self, object_type: str) -> np.ndarray:
+        return np.flatnonzero(np.asarray(self.instance_types) == object_type)
+
+    @functools.cached_property
+    def visible_matrix_csr(self) -> tuple[np.ndarray, np.ndarray]:
+        """(pose, instance) pairs of the success rule, as two aligned arrays."""
+        poses = np.repeat(np.arange(self.n_poses), np.diff(self.view_ptr))
+        return poses[self.view_visible], self.view_instance[self.view_visible]
+
+    def goal_mask(self, object_type: str) -> np.ndarray:
+        """Bool ``[P]``: poses where some instance of ``object_type`` is visible."""
+        return self.goal_mask_for_instances(self.instances_of(object_type))
+
+    def goal_mask_for_instances(self, instances: np.ndarray) -> np.ndarray:
+        poses, inst = self.visible_matrix_csr
+        mask = np.zeros(self.n_poses, dtype=bool)
+        mask[poses[np.isin(inst, instances)]] = True
+        return mask
+
+    @functools.cached_property
+    def predecessors(self) -> list[np.ndarray]:
+        preds: list[list[int]] = [[] for _ in range(self.n_poses)]
+        for p, row in enumerate(self.successors):
+            for q in set(row.tolist()) - {p}:
+                preds[q].append(p)
+        return [np.asarray(sorted(x), dtype=np.int64) for x in preds]
+
+    def distances_to(self, goal: np.ndarray) -> np.ndarray:
+        """Reverse BFS: number of movement actions from every pose to the nearest goal pose
+        (-1 where unreachable). The optimal episode length (SAVN convention) is this + 1 (Done)."""
+        dist = np.full(self.n_poses, -1, dtype=np.int32)
+        queue = deque(np.flatnonzero(goal).tolist())
+        dist[list(queue)] = 0
+        preds = self.predecessors
+        while queue:
+            q = queue.popleft()
+            for p in preds[q]:
+                if dist[p] < 0:
+                    dist[p] = dist[q] + 1
+                    queue.append(p)
+        return dist
+
+    def target_distances(self, object_type: str) -> np.ndarray:
+        if object_type not in self._distance_cache:
+            self._distance_cache[object_type] = self.distances_to(self.goal_mask(object_type))
+        return self._distance_cache[object_type]
+
+    def optimal_length(self, start: int, object_type: str) -> int:
+        """Optimal episode length in actions including ``Done`` (-1 if unreachable)."""
+        d = int(self.target_distances(object_type)[start])
+        return d + 1 if d >= 0 else -1
