@@ -3,4 +3,13 @@
 from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, room_type_of, scene_names, split_of
 from mapless.scenes.layout import Scene, SceneObject, load_scene
 
-__all__ = ["ROOM_TYPES", "SPLITS", "Scene", "SceneObject", "load_scene", "room_type_of", "scene_names", "split_of"]
+__all__ = [
+    "ROOM_TYPES",
+    "SPLITS",
+    "Scene",
+    "SceneObject",
+    "load_scene",
+    "room_type_of",
+    "scene_names",
+    "split_of",
+]

@@ -1,0 +1,156 @@
+"""On-disk cache of built scenes.
+
+A cache entry is ``<cache_dir>/<fingerprint>/<scene>.npz``. The fingerprint hashes every simulator
+parameter, the simulator's version and the scene data file, so changing any of them selects a fresh
+folder. Each file also stores its fingerprint and the checksum of its arrays; a file that does not
+load, carries another fingerprint or fails the checksum is rebuilt, never used.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from mapless.scenes.catalogue import canonical_scene
+from mapless.scenes.layout import SCENE_FILE, load_scene
+from mapless.sim.build import build_scene_data
+from mapless.sim.config import SimConfig
+from mapless.sim.scene_data import SceneData
+
+#: Bump when the simulator's output changes for the same parameters.
+SIM_VERSION = 1
+_ARRAY_FIELDS = (
+    "x", "z", "yaw", "horizon", "successors", "view_ptr", "view_instance", "view_box",
+    "view_distance", "view_visible", "context", "features",
+)  # fmt: skip
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("MAPLESS_CACHE", Path.home() / ".cache" / "mapless")) / "scenes"
+
+
+@functools.cache
+def _scene_file_digest() -> str:
+    return hashlib.sha256(resources.files("mapless.data").joinpath(SCENE_FILE).read_bytes()).hexdigest()
+
+
+def fingerprint(config: SimConfig) -> str:
+    payload = json.dumps(
+        {"sim": config.as_dict(), "version": SIM_VERSION, "data": _scene_file_digest()}, sort_keys=True
+    )
+    return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    digest = hashlib.sha256()
+    for name in _ARRAY_FIELDS:
+        digest.update(np.ascontiguousarray(arrays[name]).tobytes())
+    return digest.hexdigest()
+
+
+def cache_path(scene: str, config: SimConfig, cache_dir: Path | None = None) -> Path:
+    return Path(cache_dir or default_cache_dir()) / fingerprint(config) / f"{canonical_scene(scene)}.npz"
+
+
+def save(data: SceneData, path: Path, config: SimConfig) -> None:
+    """Atomic write: a temporary file in the same folder, then a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {name: getattr(data, name) for name in _ARRAY_FIELDS}
+    header = {
+        "fingerprint": fingerprint(config),
+        "checksum": _checksum(arrays),
+        "scene": data.scene,
+        "room_type": data.room_type,
+        "instance_ids": list(data.instance_ids),
+        "instance_types": list(data.instance_types),
+        "feature_scale": data.feature_scale,
+        "meta": data.meta,
+    }
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as tmp:
+        np.savez_compressed(tmp, header=np.array(json.dumps(header)), **arrays)
+    os.replace(tmp.name, path)
+
+
+class StaleCacheError(Exception):
+    """The cache file is unreadable, for other parameters, or corrupt."""
+
+
+def load(path: Path, config: SimConfig) -> SceneData:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            header = json.loads(str(npz["header"]))
+            arrays = {name: npz[name] for name in _ARRAY_FIELDS}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
+        raise StaleCacheError(f"{path}: unreadable ({error})") from error
+    if header.get("fingerprint") != fingerprint(config):
+        raise StaleCacheError(f"{path}: built with other simulator parameters")
+    if header.get("checksum") != _checksum(arrays):
+        raise StaleCacheError(f"{path}: checksum mismatch")
+    return SceneData(
+        scene=header["scene"],
+        room_type=header["room_type"],
+        instance_ids=tuple(header["instance_ids"]),
+        instance_types=tuple(header["instance_types"]),
+        feature_scale=header["feature_scale"],
+        meta=header["meta"],
+        **arrays,
+    )
+
+
+def load_or_build(
+    scene: str, config: SimConfig | None = None, cache_dir: Path | None = None, rebuild: bool = False
+) -> SceneData:
+    """The scene's data from the cache, building (and caching) it when missing, stale or corrupt."""
+    config = config or SimConfig()
+    path = cache_path(scene, config, cache_dir)
+    if path.exists() and not rebuild:
+        try:
+            return load(path, config)
+        except StaleCacheError:
+            pass
+    data = build_scene_data(load_scene(scene), config)
+    save(data, path, config)
+    return data
+
+
+def build_many(
+    scenes: list[str],
+    config: SimConfig,
+    cache_dir: Path | None = None,
+    workers: int = 2,
+    rebuild: bool = False,
+    progress: bool = True,
+) -> list[Path]:
+    """Build (or verify) the cache of many scenes in ``workers`` spawned processes."""
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    jobs = [(s, config, cache_dir, rebuild) for s in scenes]
+    bar = tqdm(total=len(jobs), desc="building scenes", unit="scene", disable=not progress)
+    paths = []
+    if workers <= 1:
+        for job in jobs:
+            paths.append(_build_job(job))
+            bar.update()
+    else:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for path in pool.imap_unordered(_build_job, jobs):
+                paths.append(path)
+                bar.update()
+    bar.close()
+    return paths
+
+
+def _build_job(job: tuple) -> Path:
+    scene, config, cache_dir, rebuild = job
+    load_or_build(scene, config, cache_dir, rebuild)
+    return cache_path(scene, config, cache_dir)
