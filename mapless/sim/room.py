@@ -62,7 +62,7 @@ class InteriorMask:
         ix, iz = self.cell_of(scene.reachable[:, 0], scene.reachable[:, 1])
         mask[np.clip(ix, 0, self.nx - 1), np.clip(iz, 0, self.nz - 1)] = True
         # A square structuring element keeps walls straight and axis-aligned, as iTHOR rooms are.
-        side = 2 * int(round(wall_clearance / CELL)) + 1
+        side = 2 * round(wall_clearance / CELL) + 1
         mask = ndimage.binary_dilation(mask, structure=np.ones((side, side), dtype=bool))
         for obj in scene.objects:
             (x1, _, z1), (x2, _, z2) = obj.box_min, obj.box_max
