@@ -1,0 +1,113 @@
+"""Fixed evaluation episode sets: deterministic from a seed, versioned, stored as JSON.
+
+Per room type, ``per_room`` episodes: scene uniform over the split's scenes of the room, target
+drawn over visible instances of the room's targets (as in training), start a uniform (position,
+yaw) at horizon 0 from which the target is reachable and not already visible. The optimal length
+(actions including ``Done``) is stored. The file records the simulator fingerprint it was made
+with; loading it under other simulator parameters is an error, since lengths would differ.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from mapless.episodes.episode import Episode
+from mapless.errors import MaplessError
+from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, scene_names
+from mapless.scenes.categories import targets
+from mapless.sim.library import SceneLibrary
+
+FORMAT = "mapless-episodes/1"
+EVAL_SPLITS = ("val", "test", "paper")
+
+
+def make_eval_set(library: SceneLibrary, split: str, target_set: str = "mjolnir22", per_room: int = 250,
+                  seed: int = 0, room_types: tuple[str, ...] = ROOM_TYPES) -> list[Episode]:
+    room_targets = targets(target_set)
+    episodes = []
+    for room in room_types:
+        rng = np.random.default_rng([seed, ROOM_TYPES.index(room)])
+        scenes = scene_names(split, (room,))
+        made = 0
+        attempts = 0
+        while made < per_room:
+            attempts += 1
+            if attempts > 200 * per_room:
+                raise MaplessError(f"could not make {per_room} valid {room} episodes for split {split}")
+            scene = scenes[rng.integers(len(scenes))]
+            data = library[scene]
+            _, visible = data.visible_matrix_csr
+            types = [data.instance_types[i] for i in np.unique(visible)]
+            types = [t for t in types if t in room_targets[room]]
+            starts = np.flatnonzero(data.horizon == 0)
+            if not types:
+                continue
+            target = types[rng.integers(len(types))]
+            start = int(starts[rng.integers(len(starts))])
+            distance = int(data.target_distances(target)[start])
+            if distance <= 0:  # unreachable (-1) or already visible (0)
+                continue
+            episodes.append(
+                Episode(
+                    scene=scene,
+                    target=target,
+                    start=(float(data.x[start]), float(data.z[start]), int(data.yaw[start]), int(data.horizon[start])),
+                    optimal_length=distance + 1,
+                    episode_id=f"{split}/{room}/{made:03d}",
+                )
+            )
+            made += 1
+    return episodes
+
+
+def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str) -> bytes:
+    """Canonical bytes (sorted keys, gzip without timestamp) so regeneration is bit-for-bit."""
+    payload = {
+        "format": FORMAT,
+        "split": split,
+        "scenes": f"x{SPLITS[split].start:02d}-x{SPLITS[split].stop - 1:02d}",
+        "target_set": target_set,
+        "seed": seed,
+        "sim_fingerprint": sim_fingerprint,
+        "episodes": [e.to_dict() for e in episodes],
+    }
+    text = json.dumps(payload, sort_keys=True, indent=0).encode()
+    buffer = io.BytesIO()
+    with gzip.GzipFile(fileobj=buffer, mode="wb", mtime=0, compresslevel=9) as f:
+        f.write(text)
+    return buffer.getvalue()
+
+
+def save(path: Path, episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(dumps(episodes, split, target_set, seed, sim_fingerprint))
+
+
+def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[list[Episode], dict]:
+    """Episodes and header of an episode file; checks the format and, if given, the simulator."""
+    path = Path(path)
+    try:
+        payload = json.loads(gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_text())
+    except (OSError, ValueError) as error:
+        raise MaplessError(f"cannot read episode file {path}: {error}") from error
+    if payload.get("format") != FORMAT:
+        raise MaplessError(f"{path}: not a {FORMAT} file (format {payload.get('format')!r})")
+    if expected_fingerprint and payload["sim_fingerprint"] != expected_fingerprint:
+        raise MaplessError(
+            f"{path} was made with simulator {payload['sim_fingerprint']}, but the current simulator is "
+            f"{expected_fingerprint}; regenerate it with `mapless episodes make`"
+        )
+    header = {k: v for k, v in payload.items() if k != "episodes"}
+    return [Episode.from_dict(e) for e in payload["episodes"]], header
+
+
+def builtin_path(split: str, target_set: str = "mjolnir22") -> Path:
+    if split not in EVAL_SPLITS:
+        raise MaplessError(f"no built-in episode set for split {split!r}; choose one of {EVAL_SPLITS}")
+    return Path(str(resources.files("mapless.data").joinpath(f"episodes/{split}_{target_set}.json.gz")))

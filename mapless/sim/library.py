@@ -1,0 +1,50 @@
+"""A process-wide store of loaded :class:`SceneData`, keyed by scene name."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from mapless.errors import MaplessError
+from mapless.sim.config import SimConfig
+from mapless.sim.scene_data import SceneData
+
+
+class SceneLibrary:
+    """Loads scenes on first use through ``loader`` and keeps them (all of iTHOR fits in memory:
+    about 1 GB of uint8 feature maps for the 120 scenes)."""
+
+    def __init__(self, loader: Callable[[str], SceneData]):
+        self._loader = loader
+        self._scenes: dict[str, SceneData] = {}
+
+    @classmethod
+    def builtin(cls, config: SimConfig | None = None, cache_dir: Path | None = None) -> SceneLibrary:
+        from mapless.sim.cache import load_or_build
+
+        config = config or SimConfig()
+        return cls(lambda name: load_or_build(name, config, cache_dir))
+
+    def __getitem__(self, scene: str) -> SceneData:
+        if scene not in self._scenes:
+            self._scenes[scene] = self._loader(scene)
+        return self._scenes[scene]
+
+    def pose_of(self, scene: str, start: tuple[float, float, int, int]) -> int:
+        """Pose id of ``(x, z, yaw, horizon)``; an off-grid pose is an error naming the nearest one."""
+        data = self[scene]
+        x, z, yaw, horizon = start
+        from mapless.sim.scene_data import pose_key
+
+        key = pose_key(x, z, yaw, horizon)
+        if key in data.pose_index:
+            return data.pose_index[key]
+        cost = np.hypot(data.x - x, data.z - z) + 0.01 * (data.yaw != int(yaw) % 360) + 0.01 * (
+            data.horizon != int(horizon)
+        )
+        nearest = int(np.argmin(cost))
+        raise MaplessError(
+            f"pose {key} is not on the reachable grid of {scene}; nearest valid pose: {data.key(nearest)}"
+        )

@@ -1,0 +1,162 @@
+"""Batched environment: many ObjectNav episodes stepped at once with numpy.
+
+All scenes given at construction are concatenated into global pose-indexed arrays, so a step of
+``B`` episodes in any mix of scenes is a handful of vectorised gathers. Observations are gathered
+only for the keys a model asks for (:meth:`observe`), since the feature map is the costly one.
+
+Slots whose episode ended stay frozen (actions ignored, ``done`` True) until :meth:`reset` gives
+them a new episode, which suits lockstep rollouts of whole episodes (the meta-learning trainers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapless.episodes.episode import Episode
+from mapless.sim.library import SceneLibrary
+from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
+from mapless.sim.task import RewardConfig, TargetFields, max_steps_for
+
+
+@dataclass
+class BatchStep:
+    """Result of one batched step (arrays of length ``B``)."""
+
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    success: np.ndarray
+    failed_action: np.ndarray
+    active: np.ndarray  # the slot took this step (it was not already done)
+
+
+class BatchedNavEnv:
+    def __init__(
+        self,
+        library: SceneLibrary,
+        scenes: list[str],
+        batch_size: int,
+        targets: TargetFields | None = None,
+        rewards: RewardConfig | None = None,
+        mode: str = "train",
+        max_steps: int | None = None,
+        category_set: str = "mjolnir101",
+    ):
+        self.library = library
+        self.batch_size = batch_size
+        self.targets = targets or TargetFields(category_set)
+        self.rewards = rewards or RewardConfig()
+        self.mode = mode
+        self.fixed_max_steps = max_steps
+        self.scene_names = list(dict.fromkeys(scenes))
+        datas = [library[s] for s in self.scene_names]
+        self.scene_offset = dict(zip(self.scene_names, np.cumsum([0] + [d.n_poses for d in datas[:-1]]), strict=True))
+        self.successors = np.concatenate(
+            [d.successors.astype(np.int64) + self.scene_offset[s] for s, d in zip(self.scene_names, datas, strict=True)]
+        )
+        self.context = np.concatenate([d.context for d in datas])
+        self.features = np.concatenate([d.features for d in datas])
+        self.feature_scale = np.float32(datas[0].feature_scale)
+        self.n_poses = len(self.successors)
+        self._goal_ids: dict[tuple, int] = {}
+        self._goal_keys = np.zeros(0, dtype=np.int64)  # sorted goal_id * n_poses + global pose
+        n_cat = len(self.targets.categories)
+        self._parent_bonus_rows: list[np.ndarray] = []
+        b = batch_size
+        self.pose = np.zeros(b, dtype=np.int64)
+        self.goal = np.zeros(b, dtype=np.int64)
+        self.steps = np.zeros(b, dtype=np.int64)
+        self.max_steps = np.full(b, 1, dtype=np.int64)
+        self.done = np.ones(b, dtype=bool)
+        self.target_embedding = np.zeros((b, 300), dtype=np.float32)
+        self.target_index = np.full(b, -1, dtype=np.int64)
+        self.optimal_length = np.full(b, -1, dtype=np.int64)
+        self.seen_parents = np.zeros((b, n_cat), dtype=bool)
+        self.parent_bonus = np.zeros((b, n_cat), dtype=np.float32)
+        self.episodes: list[Episode | None] = [None] * b
+
+    def _goal_id(self, episode: Episode) -> int:
+        key = (episode.scene, episode.target, episode.target_ids)
+        if key not in self._goal_ids:
+            data = self.library[episode.scene]
+            if episode.target_ids:
+                index = {iid: i for i, iid in enumerate(data.instance_ids)}
+                instances = np.array([index[i] for i in episode.target_ids if i in index], dtype=np.int64)
+            else:
+                instances = data.instances_of(episode.target)
+            goal_poses = np.flatnonzero(data.goal_mask_for_instances(instances)) + self.scene_offset[episode.scene]
+            gid = len(self._goal_ids)
+            self._goal_ids[key] = gid
+            self._goal_keys = np.union1d(self._goal_keys, gid * self.n_poses + goal_poses)
+        return self._goal_ids[key]
+
+    def reset(self, slots: np.ndarray | list[int], episodes: list[Episode]) -> None:
+        """Start ``episodes`` in ``slots``."""
+        for slot, episode in zip(slots, episodes, strict=True):
+            if episode.scene not in self.scene_offset:
+                raise KeyError(f"scene {episode.scene} was not given to this BatchedNavEnv")
+            data = self.library[episode.scene]
+            local = self.library.pose_of(episode.scene, episode.start)
+            self.pose[slot] = local + self.scene_offset[episode.scene]
+            self.goal[slot] = self._goal_id(episode)
+            self.steps[slot] = 0
+            self.max_steps[slot] = self.fixed_max_steps or max_steps_for(data.room_type, self.mode)
+            self.done[slot] = False
+            self.target_embedding[slot] = self.targets.embedding(episode.target)
+            self.target_index[slot] = self.targets.index(episode.target)
+            self.parent_bonus[slot] = self.targets.parent_bonus(data.room_type, episode.target)
+            self.seen_parents[slot] = False
+            optimal = episode.optimal_length
+            if optimal < 0:
+                d = int(data.target_distances(episode.target)[local]) if not episode.target_ids else -1
+                optimal = d + 1 if d >= 0 else -1
+            self.optimal_length[slot] = optimal
+            self.episodes[slot] = episode
+
+    def at_goal(self) -> np.ndarray:
+        keys = self.goal * self.n_poses + self.pose
+        found = np.searchsorted(self._goal_keys, keys)
+        found = np.minimum(found, len(self._goal_keys) - 1)
+        return self._goal_keys[found] == keys if len(self._goal_keys) else np.zeros_like(keys, dtype=bool)
+
+    def step(self, actions: np.ndarray) -> BatchStep:
+        actions = np.asarray(actions, dtype=np.int64)
+        active = ~self.done
+        is_done = active & (actions == DONE)
+        success = is_done & self.at_goal()
+        moving = active & (actions != DONE)
+        before = self.pose
+        safe_actions = np.minimum(actions, N_MOVEMENT_ACTIONS - 1)
+        after = np.where(moving, self.successors[before, safe_actions], before)
+        failed = moving & (after == before)
+        self.pose = after
+        reward = np.where(success, self.rewards.success_reward, self.rewards.step_penalty).astype(np.float32)
+        if self.rewards.parent_reward:
+            in_view = self.context[after, :, 0] > 0
+            new = in_view & ~self.seen_parents & (self.parent_bonus > 0) & moving[:, None]
+            bonus = np.where(new, self.parent_bonus, 0.0).max(axis=1)
+            reward = np.where(bonus > 0, bonus, reward).astype(np.float32)
+            self.seen_parents |= new
+        reward[~active] = 0.0
+        self.steps += active
+        truncated = active & ~is_done & (self.steps >= self.max_steps)
+        self.done = self.done | is_done | truncated
+        return BatchStep(reward, is_done, truncated, success, failed, active)
+
+    def observe(self, keys: tuple[str, ...] = ("context", "features", "target_embedding", "target_index")) -> dict:
+        """Observation arrays of the current poses, float32 (docs/observations.md)."""
+        out = {}
+        for key in keys:
+            if key == "context":
+                out[key] = self.context[self.pose]
+            elif key == "features":
+                out[key] = self.features[self.pose].astype(np.float32) * self.feature_scale
+            elif key == "target_embedding":
+                out[key] = self.target_embedding.copy()
+            elif key == "target_index":
+                out[key] = self.target_index.copy()
+            else:
+                raise KeyError(f"unknown observation key {key!r}")
+        return out
