@@ -68,7 +68,13 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         if isinstance(value, bool):
             raise ConfigError(f"config key {key!r}: expected a number, got {value!r}")
         try:
-            number = float(value) if annotation is float else int(str(value), 0) if isinstance(value, str) else value
+            number = (
+                float(value)
+                if annotation is float
+                else int(str(value), 0)
+                if isinstance(value, str)
+                else value
+            )
         except ValueError:
             raise ConfigError(f"config key {key!r}: expected {annotation.__name__}, got {value!r}") from None
         if annotation is int and (not isinstance(number, int) or isinstance(number, float)):

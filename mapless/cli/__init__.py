@@ -12,6 +12,10 @@ from mapless.errors import MaplessError
 COMMAND_MODULES = (
     "mapless.cli.scenes",
     "mapless.cli.episodes",
+    "mapless.cli.models",
+    "mapless.cli.interop",
+    "mapless.cli.evaluate",
+    "mapless.cli.train",
 )
 
 

@@ -27,8 +27,14 @@ FORMAT = "mapless-episodes/1"
 EVAL_SPLITS = ("val", "test", "paper")
 
 
-def make_eval_set(library: SceneLibrary, split: str, target_set: str = "mjolnir22", per_room: int = 250,
-                  seed: int = 0, room_types: tuple[str, ...] = ROOM_TYPES) -> list[Episode]:
+def make_eval_set(
+    library: SceneLibrary,
+    split: str,
+    target_set: str = "mjolnir22",
+    per_room: int = 250,
+    seed: int = 0,
+    room_types: tuple[str, ...] = ROOM_TYPES,
+) -> list[Episode]:
     room_targets = targets(target_set)
     episodes = []
     for room in room_types:
@@ -57,7 +63,12 @@ def make_eval_set(library: SceneLibrary, split: str, target_set: str = "mjolnir2
                 Episode(
                     scene=scene,
                     target=target,
-                    start=(float(data.x[start]), float(data.z[start]), int(data.yaw[start]), int(data.horizon[start])),
+                    start=(
+                        float(data.x[start]),
+                        float(data.z[start]),
+                        int(data.yaw[start]),
+                        int(data.horizon[start]),
+                    ),
                     optimal_length=distance + 1,
                     episode_id=f"{split}/{room}/{made:03d}",
                 )
@@ -84,7 +95,9 @@ def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_f
     return buffer.getvalue()
 
 
-def save(path: Path, episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str) -> None:
+def save(
+    path: Path, episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str
+) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(dumps(episodes, split, target_set, seed, sim_fingerprint))
 

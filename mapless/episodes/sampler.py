@@ -22,8 +22,14 @@ from mapless.sim.library import SceneLibrary
 
 
 class TrainingSampler:
-    def __init__(self, library: SceneLibrary, scenes: list[str], target_set: str = "mjolnir22",
-                 seed: int = 0, require_reachable: bool = False):
+    def __init__(
+        self,
+        library: SceneLibrary,
+        scenes: list[str],
+        target_set: str = "mjolnir22",
+        seed: int = 0,
+        require_reachable: bool = False,
+    ):
         self.library = library
         self.targets = targets(target_set)
         self.require_reachable = require_reachable
@@ -65,6 +71,11 @@ class TrainingSampler:
             return Episode(
                 scene=scene,
                 target=target,
-                start=(float(data.x[start]), float(data.z[start]), int(data.yaw[start]), int(data.horizon[start])),
+                start=(
+                    float(data.x[start]),
+                    float(data.z[start]),
+                    int(data.yaw[start]),
+                    int(data.horizon[start]),
+                ),
             )
         raise RuntimeError(f"no valid training episode found in {room} scenes {scenes}")

@@ -7,6 +7,7 @@ import numpy as np
 from mapless.scenes.categories import category_set
 from mapless.scenes.layout import Scene
 from mapless.sim.config import SimConfig
+from mapless.sim.context import context_from_boxes
 from mapless.sim.raycast import FLOOR, WALL, Frame, RayCaster
 from mapless.sim.room import InteriorMask, obstacle_polygons, segment_hits_polygon
 from mapless.sim.scene_data import N_MOVEMENT_ACTIONS, SceneData
@@ -97,7 +98,7 @@ def build_scene_data(scene: Scene, config: SimConfig, progress: bool = False) ->
         visible = (dist <= config.visibility_distance) & ~hidden[inst]
         view_chunks.append((inst, boxes, dist, visible))
         view_ptr[pose + 1] = view_ptr[pose] + len(inst)
-        _fill_context(context[pose], inst, boxes, cat_of_instance, config.image_size)
+        context[pose] = context_from_boxes(cat_of_instance[inst], boxes, n_cat, config.image_size)
         features[pose] = _feature_map(frame, cat_of_instance, n_cat, cell_of_ray, cell * cell)
 
     view_inst, view_box, view_dist, view_vis = (
@@ -147,19 +148,6 @@ def _instances_in_frame(
     dist = np.full(len(inst), np.inf)
     np.minimum.at(dist, inverse, _capsule_distance(frame.points[rays], x, z, eye_height))
     return inst.astype(np.int32), boxes, dist
-
-
-def _fill_context(
-    out: np.ndarray, inst: np.ndarray, boxes: np.ndarray, cat_of_instance: np.ndarray, image_size: int
-) -> None:
-    """MJOLNIR's context row per category: [1, mean of x1/x2, mean of y1/y2, union-box area]."""
-    cats = cat_of_instance[inst]
-    for c in np.unique(cats[cats >= 0]):
-        b = boxes[cats == c] / image_size
-        out[c, 0] = 1.0
-        out[c, 1] = b[:, [0, 2]].mean()
-        out[c, 2] = b[:, [1, 3]].mean()
-        out[c, 3] = (b[:, 2].max() - b[:, 0].min()) * (b[:, 3].max() - b[:, 1].min())
 
 
 def _feature_map(

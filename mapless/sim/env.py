@@ -15,12 +15,15 @@ limit. ``info`` carries ``success``, ``optimal_length``, ``visited`` (pose ids s
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
 from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
+from mapless.knowledge.parents import parent_reward
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import ACTIONS, DONE
 from mapless.sim.task import RewardConfig, TargetFields, max_steps_for
@@ -29,7 +32,7 @@ ENV_ID = "mapless/ObjectNav-v0"
 
 
 class NavEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata: ClassVar[dict] = {"render_modes": []}
 
     def __init__(
         self,
@@ -94,8 +97,8 @@ class NavEnv(gym.Env):
         self._goal, distances = self._goal_and_distances(episode)
         self._target_embedding = self.targets.embedding(episode.target)
         self._target_index = np.int64(self.targets.index(episode.target))
-        self._parent_bonus = self.targets.parent_bonus(self.data.room_type, episode.target)
-        self._seen_parents = np.zeros_like(self._parent_bonus, dtype=bool)
+        self._parent_weights = self.targets.parent_weights(self.data.room_type, episode.target)
+        self._seen_parents = np.zeros_like(self._parent_weights, dtype=bool)
         self.max_steps = self.fixed_max_steps or max_steps_for(self.data.room_type, self.mode)
         self.steps = 0
         self.visited = [self.pose]
@@ -152,10 +155,11 @@ class NavEnv(gym.Env):
             self.visited.append(nxt)
             terminated = False
             if self.rewards.parent_reward:
-                new = (self._context[nxt, :, 0] > 0) & ~self._seen_parents & (self._parent_bonus > 0)
-                if new.any():
-                    reward = float(self._parent_bonus[new].max())
-                    self._seen_parents |= new
+                bonus, self._seen_parents = parent_reward(
+                    self._context[nxt, :, 0] > 0, self._parent_weights, self._seen_parents
+                )
+                if bonus > 0:
+                    reward = float(bonus)
         truncated = not terminated and self.steps >= self.max_steps
         return self._observation(), reward, terminated, truncated, self._info(success, failed)
 

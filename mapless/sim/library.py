@@ -41,8 +41,10 @@ class SceneLibrary:
         key = pose_key(x, z, yaw, horizon)
         if key in data.pose_index:
             return data.pose_index[key]
-        cost = np.hypot(data.x - x, data.z - z) + 0.01 * (data.yaw != int(yaw) % 360) + 0.01 * (
-            data.horizon != int(horizon)
+        cost = (
+            np.hypot(data.x - x, data.z - z)
+            + 0.01 * (data.yaw != int(yaw) % 360)
+            + 0.01 * (data.horizon != int(horizon))
         )
         nearest = int(np.argmin(cost))
         raise MaplessError(

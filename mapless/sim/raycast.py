@@ -61,7 +61,12 @@ class Boxes:
             centre.append(c)
             half.append(s)
         hollow = [o.receptacle and not o.hides_contents for o in scene.objects]
-        return cls(np.array(centre), np.maximum(np.array(half), 1e-3), np.array(axis), np.array(hollow, bool))
+        return cls(
+            np.array(centre, dtype=float).reshape(-1, 3),
+            np.maximum(np.array(half, dtype=float).reshape(-1, 3), 1e-3),
+            np.array(axis, dtype=float).reshape(-1, 2),
+            np.array(hollow, dtype=bool),
+        )
 
     def corners(self) -> np.ndarray:
         """``[M, 8, 3]`` world corners."""
@@ -109,7 +114,7 @@ class RayCaster:
         points = np.concatenate([corners, clipped], axis=1)
         valid = np.concatenate([depth > _NEAR, crosses], axis=1)
         pixels, _ = project(points.reshape(-1, 3), eye, yaw, horizon, fov, res)
-        pixels = pixels.reshape(len(corners), -1, 2)
+        pixels = pixels.reshape(len(corners), points.shape[1], 2)
         lo = np.where(valid[..., None], pixels, np.inf).min(axis=1)
         hi = np.where(valid[..., None], pixels, -np.inf).max(axis=1)
         rects = np.empty((len(corners), 4), dtype=int)

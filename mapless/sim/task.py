@@ -3,13 +3,13 @@ and how a target is turned into observation fields."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from mapless.knowledge.glove import glove_vector
+from mapless.knowledge.parents import parent_weights
 from mapless.scenes.categories import category_set
-from mapless.sim.scene_data import SceneData
 
 #: SAVN's evaluation limits: 100 steps, 200 in living rooms; training episodes stop at 30.
 TRAIN_MAX_STEPS = 30
@@ -32,49 +32,29 @@ def max_steps_for(room_type: str, mode: str) -> int:
     return TRAIN_MAX_STEPS if mode == "train" else EVAL_MAX_STEPS[room_type]
 
 
-#: ``(room_type, target) -> {parent object type: bonus}``; provided by the knowledge module.
-ParentTable = Callable[[str, str], Mapping[str, float]]
-#: ``target type -> 300-d embedding``.
-TargetEmbedder = Callable[[str], np.ndarray]
-
-
-def zero_embedder(target: str) -> np.ndarray:
-    return np.zeros(300, dtype=np.float32)
-
-
 class TargetFields:
-    """Caches per target the observation fields and per (room, target) the parent bonus vector
-    over categories."""
+    """Per-target observation fields (GloVe vector, category row) and per (room, target) the parent
+    weights over categories, cached."""
 
-    def __init__(self, category_set_name: str, embedder: TargetEmbedder | None = None,
-                 parent_table: ParentTable | None = None):
+    def __init__(self, category_set_name: str = "mjolnir101"):
         self.categories = category_set(category_set_name)
-        self._embedder = embedder or zero_embedder
-        self._parent_table = parent_table
+        self.category_set_name = category_set_name
         self._embeddings: dict[str, np.ndarray] = {}
         self._parents: dict[tuple[str, str], np.ndarray] = {}
 
     def embedding(self, target: str) -> np.ndarray:
         if target not in self._embeddings:
-            self._embeddings[target] = np.asarray(self._embedder(target), dtype=np.float32)
+            self._embeddings[target] = np.asarray(
+                glove_vector(target, self.category_set_name), dtype=np.float32
+            )
         return self._embeddings[target]
 
     def index(self, target: str) -> int:
         return self.categories.type_to_index.get(target, -1)
 
-    def parent_bonus(self, room_type: str, target: str) -> np.ndarray:
-        """``[C]`` bonus per category (0 for non-parents)."""
+    def parent_weights(self, room_type: str, target: str) -> np.ndarray:
+        """``[C]`` parent bonus per category row (0 for non-parents)."""
         key = (room_type, target)
         if key not in self._parents:
-            bonus = np.zeros(len(self.categories), dtype=np.float32)
-            if self._parent_table is not None:
-                for parent, value in self._parent_table(room_type, target).items():
-                    index = self.categories.type_to_index.get(parent)
-                    if index is not None:
-                        bonus[index] = max(bonus[index], value)
-            self._parents[key] = bonus
+            self._parents[key] = parent_weights(room_type, target, self.category_set_name)
         return self._parents[key]
-
-
-def in_view_categories(data: SceneData, pose: int) -> np.ndarray:
-    return data.context[pose, :, 0] > 0

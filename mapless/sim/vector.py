@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapless.episodes.episode import Episode
+from mapless.knowledge.parents import parent_reward
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
 from mapless.sim.task import RewardConfig, TargetFields, max_steps_for
@@ -52,9 +53,14 @@ class BatchedNavEnv:
         self.fixed_max_steps = max_steps
         self.scene_names = list(dict.fromkeys(scenes))
         datas = [library[s] for s in self.scene_names]
-        self.scene_offset = dict(zip(self.scene_names, np.cumsum([0] + [d.n_poses for d in datas[:-1]]), strict=True))
+        self.scene_offset = dict(
+            zip(self.scene_names, np.cumsum([0] + [d.n_poses for d in datas[:-1]]), strict=True)
+        )
         self.successors = np.concatenate(
-            [d.successors.astype(np.int64) + self.scene_offset[s] for s, d in zip(self.scene_names, datas, strict=True)]
+            [
+                d.successors.astype(np.int64) + self.scene_offset[s]
+                for s, d in zip(self.scene_names, datas, strict=True)
+            ]
         )
         self.context = np.concatenate([d.context for d in datas])
         self.features = np.concatenate([d.features for d in datas])
@@ -63,7 +69,6 @@ class BatchedNavEnv:
         self._goal_ids: dict[tuple, int] = {}
         self._goal_keys = np.zeros(0, dtype=np.int64)  # sorted goal_id * n_poses + global pose
         n_cat = len(self.targets.categories)
-        self._parent_bonus_rows: list[np.ndarray] = []
         b = batch_size
         self.pose = np.zeros(b, dtype=np.int64)
         self.goal = np.zeros(b, dtype=np.int64)
@@ -74,7 +79,7 @@ class BatchedNavEnv:
         self.target_index = np.full(b, -1, dtype=np.int64)
         self.optimal_length = np.full(b, -1, dtype=np.int64)
         self.seen_parents = np.zeros((b, n_cat), dtype=bool)
-        self.parent_bonus = np.zeros((b, n_cat), dtype=np.float32)
+        self.parent_weights = np.zeros((b, n_cat), dtype=np.float32)
         self.episodes: list[Episode | None] = [None] * b
 
     def _goal_id(self, episode: Episode) -> int:
@@ -86,7 +91,9 @@ class BatchedNavEnv:
                 instances = np.array([index[i] for i in episode.target_ids if i in index], dtype=np.int64)
             else:
                 instances = data.instances_of(episode.target)
-            goal_poses = np.flatnonzero(data.goal_mask_for_instances(instances)) + self.scene_offset[episode.scene]
+            goal_poses = (
+                np.flatnonzero(data.goal_mask_for_instances(instances)) + self.scene_offset[episode.scene]
+            )
             gid = len(self._goal_ids)
             self._goal_ids[key] = gid
             self._goal_keys = np.union1d(self._goal_keys, gid * self.n_poses + goal_poses)
@@ -106,7 +113,7 @@ class BatchedNavEnv:
             self.done[slot] = False
             self.target_embedding[slot] = self.targets.embedding(episode.target)
             self.target_index[slot] = self.targets.index(episode.target)
-            self.parent_bonus[slot] = self.targets.parent_bonus(data.room_type, episode.target)
+            self.parent_weights[slot] = self.targets.parent_weights(data.room_type, episode.target)
             self.seen_parents[slot] = False
             optimal = episode.optimal_length
             if optimal < 0:
@@ -134,18 +141,18 @@ class BatchedNavEnv:
         self.pose = after
         reward = np.where(success, self.rewards.success_reward, self.rewards.step_penalty).astype(np.float32)
         if self.rewards.parent_reward:
-            in_view = self.context[after, :, 0] > 0
-            new = in_view & ~self.seen_parents & (self.parent_bonus > 0) & moving[:, None]
-            bonus = np.where(new, self.parent_bonus, 0.0).max(axis=1)
+            in_view = (self.context[after, :, 0] > 0) & moving[:, None]
+            bonus, self.seen_parents = parent_reward(in_view, self.parent_weights, self.seen_parents)
             reward = np.where(bonus > 0, bonus, reward).astype(np.float32)
-            self.seen_parents |= new
         reward[~active] = 0.0
         self.steps += active
         truncated = active & ~is_done & (self.steps >= self.max_steps)
         self.done = self.done | is_done | truncated
         return BatchStep(reward, is_done, truncated, success, failed, active)
 
-    def observe(self, keys: tuple[str, ...] = ("context", "features", "target_embedding", "target_index")) -> dict:
+    def observe(
+        self, keys: tuple[str, ...] = ("context", "features", "target_embedding", "target_index")
+    ) -> dict:
         """Observation arrays of the current poses, float32 (docs/observations.md)."""
         out = {}
         for key in keys:

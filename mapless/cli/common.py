@@ -1,0 +1,40 @@
+"""Arguments shared by several sub-commands."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mapless.config import load_config
+from mapless.sim.config import SimConfig
+
+
+def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--sim-config", type=Path, help="YAML file with simulator settings (SimConfig fields)"
+    )
+    parser.add_argument(
+        "--sim",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a simulator setting, e.g. visibility_distance=1.5",
+    )
+    parser.add_argument(
+        "--cache-dir", type=Path, help="scene cache folder (default $MAPLESS_CACHE or ~/.cache/mapless)"
+    )
+
+
+def sim_config_from(args: argparse.Namespace) -> SimConfig:
+    return load_config(SimConfig, args.sim_config, args.sim)
+
+
+def parse_pose(text: str) -> tuple[float, float, int, int]:
+    """``"x,z,yaw,horizon"`` or the SAVN key ``"x|z|yaw|horizon"``."""
+    parts = text.replace("|", ",").split(",")
+    if len(parts) != 4:
+        raise argparse.ArgumentTypeError(f"pose {text!r} must be x,z,yaw,horizon")
+    try:
+        return float(parts[0]), float(parts[1]), int(parts[2]), int(parts[3])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"pose {text!r} must be x,z,yaw,horizon (numbers)") from None

@@ -1,0 +1,107 @@
+"""``mapless episodes make | show``."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+from pathlib import Path
+
+import numpy as np
+
+from mapless.cli.common import add_sim_arguments, sim_config_from
+from mapless.episodes import evalsets
+from mapless.errors import MaplessError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("episodes", help="make and inspect fixed evaluation episode sets")
+    sub = parser.add_subparsers(dest="episodes_command", required=True)
+
+    make = sub.add_parser("make", help="(re)generate evaluation episode files deterministically from a seed")
+    make.add_argument("--splits", default="val,test,paper")
+    make.add_argument("--target-set", default="mjolnir22")
+    make.add_argument("--per-room", type=int, default=250)
+    make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--out", type=Path, default=Path("episodes"))
+    make.add_argument(
+        "--check", action="store_true", help="also compare with the built-in files byte for byte"
+    )
+    add_sim_arguments(make)
+    make.set_defaults(func=_make)
+
+    show = sub.add_parser("show", help="summary of an episode set, or a picture of one episode")
+    show.add_argument("source", help="a split name (built-in set) or an episode file")
+    show.add_argument("--target-set", default="mjolnir22")
+    show.add_argument("--index", type=int, help="draw this episode (needs --out)")
+    show.add_argument("--out", type=Path)
+    add_sim_arguments(show)
+    show.set_defaults(func=_show)
+
+
+def _make(args: argparse.Namespace) -> int:
+    from mapless.sim.cache import fingerprint
+    from mapless.sim.library import SceneLibrary
+
+    config = sim_config_from(args)
+    library = SceneLibrary.builtin(config, args.cache_dir)
+    mismatches = 0
+    for split in args.splits.split(","):
+        episodes = evalsets.make_eval_set(library, split, args.target_set, args.per_room, args.seed)
+        path = args.out / f"{split}_{args.target_set}.json.gz"
+        evalsets.save(path, episodes, split, args.target_set, args.seed, fingerprint(config))
+        print(f"wrote {path}: {len(episodes)} episodes")
+        if args.check:
+            same = path.read_bytes() == evalsets.builtin_path(split, args.target_set).read_bytes()
+            print(f"  identical to the built-in {split} set: {same}")
+            mismatches += not same
+    return 1 if mismatches else 0
+
+
+def _load(source: str, target_set: str) -> tuple[list, dict]:
+    path = Path(source)
+    if not path.exists():
+        if source not in evalsets.EVAL_SPLITS:
+            raise MaplessError(f"{source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}")
+        path = evalsets.builtin_path(source, target_set)
+    return evalsets.load(path)
+
+
+def _show(args: argparse.Namespace) -> int:
+    episodes, header = _load(args.source, args.target_set)
+    print(f"{len(episodes)} episodes, split {header['split']} ({header['scenes']}), seed {header['seed']}")
+    by_room = collections.defaultdict(list)
+    for e in episodes:
+        by_room[e.episode_id.split("/")[1] if "/" in e.episode_id else "?"].append(e)
+    for room, eps in by_room.items():
+        lengths = np.array([e.optimal_length for e in eps])
+        counts = collections.Counter(e.target for e in eps)
+        print(
+            f"  {room:<12} {len(eps):>4} eps  L mean {lengths.mean():.1f}  L>=5 {np.mean(lengths >= 5):.0%}  "
+            + ", ".join(f"{t} {n}" for t, n in counts.most_common())
+        )
+    if args.index is not None:
+        if args.out is None:
+            raise MaplessError("--index needs --out PNG")
+        _draw(episodes[args.index], args)
+    return 0
+
+
+def _draw(episode, args: argparse.Namespace) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mapless.scenes.layout import load_scene
+    from mapless.sim.pictures import draw_top_down, egocentric_view
+
+    config = sim_config_from(args)
+    scene = load_scene(episode.scene)
+    fig, (top, ego) = plt.subplots(1, 2, figsize=(13, 6))
+    draw_top_down(top, scene, config, (episode.target,), episode.start)
+    ego.imshow(egocentric_view(scene, config, *episode.start, size=210))
+    ego.set_title(f"{episode.episode_id}: find {episode.target} (L*={episode.optimal_length})")
+    ego.axis("off")
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=90)
+    print(f"wrote {args.out}")

@@ -1,0 +1,238 @@
+"""``mapless export``, ``mapless thor scrape`` and ``mapless interop ...``: AI2-THOR interop.
+
+* ``mapless export SCENES --format savn|mjolnir --out DIR``: built-in scenes as SAVN/MJOLNIR
+  offline folders.
+* ``mapless thor scrape SCENES --out DIR``: offline folders scraped from a live AI2-THOR.
+* ``mapless interop check DIR``: load offline folders as training would and summarise them.
+* ``mapless interop episodes-import FILE.pkl``: map a published episode pickle onto the built-in
+  scenes (a mapless episode file).
+* ``mapless interop episodes-export SOURCE --format savn|mjolnir --out FILE.pkl``: our episode
+  sets as evaluation pickles for the original code bases.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from mapless.cli.common import add_sim_arguments, sim_config_from
+from mapless.errors import MaplessError
+from mapless.offline.format import FORMATS
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    export = subparsers.add_parser("export", help="write built-in scenes as SAVN/MJOLNIR offline folders")
+    export.add_argument("scenes", help="split name, split:room, or FloorPlan names (comma-separated)")
+    export.add_argument("--format", choices=FORMATS, default="savn")
+    export.add_argument("--out", type=Path, required=True, help="offline data root (one folder per scene)")
+    export.add_argument("--no-compression", action="store_true", help="write the feature HDF5 uncompressed")
+    add_sim_arguments(export)
+    export.set_defaults(func=_export)
+
+    thor = subparsers.add_parser("thor", help="live AI2-THOR backend (needs the mapless[thor] extra)")
+    thor_sub = thor.add_subparsers(dest="thor_command", required=True)
+    scrape = thor_sub.add_parser("scrape", help="breadth-first search over poses into offline folders")
+    scrape.add_argument("scenes", help="split name, split:room, or FloorPlan names (comma-separated)")
+    scrape.add_argument("--out", type=Path, required=True)
+    scrape.add_argument("--format", choices=FORMATS, default="savn")
+    scrape.add_argument("--visibility-distance", type=float, default=1.0, help="m (default 1.0)")
+    scrape.add_argument("--horizons", default="0,30", help="camera horizons, comma-separated (default 0,30)")
+    scrape.add_argument("--field-of-view", type=float, default=90.0)
+    scrape.add_argument("--category-set", default="mjolnir101")
+    scrape.add_argument("--platform", help="ai2thor platform, e.g. CloudRendering for headless Vulkan")
+    scrape.add_argument("--commit-id", help="pin the AI2-THOR build")
+    scrape.add_argument("--local-executable-path", help="use an already downloaded AI2-THOR build")
+    scrape.add_argument("--images", action="store_true", help="also write images.hdf5 with the RGB frames")
+    scrape.set_defaults(func=_scrape)
+
+    interop = subparsers.add_parser("interop", help="check offline folders, import/export episode pickles")
+    sub = interop.add_subparsers(dest="interop_command", required=True)
+    check = sub.add_parser("check", help="load offline scene folders and summarise them")
+    check.add_argument("folders", nargs="+", type=Path, help="scene folders, or roots holding them")
+    check.add_argument("--category-set", default="mjolnir101")
+    check.add_argument("--visible-file", default="visible_object_map.json")
+    check.add_argument("--no-features", action="store_true", help="skip reading the feature HDF5")
+    check.set_defaults(func=_check)
+
+    imp = sub.add_parser(
+        "episodes-import", help="map a SAVN/MJOLNIR/HOZ episode pickle onto the built-in scenes"
+    )
+    imp.add_argument("file", type=Path)
+    imp.add_argument("--out", type=Path, help="mapless episode file to write (.json.gz)")
+    imp.add_argument("--max-target-distance", type=float, default=0.5, help="m, horizontal (default 0.5)")
+    imp.add_argument("--max-start-distance", type=float, default=0.36, help="m (default 0.36)")
+    imp.add_argument("--target-set", default="imported", help="label stored in the episode file")
+    imp.add_argument("--show-skipped", action="store_true", help="list every skipped episode")
+    add_sim_arguments(imp)
+    imp.set_defaults(func=_import_episodes)
+
+    exp = sub.add_parser("episodes-export", help="write a mapless episode set as a SAVN/MJOLNIR pickle")
+    exp.add_argument("source", help="a built-in split (val, test, paper) or a mapless episode file")
+    exp.add_argument("--format", choices=FORMATS, default="savn")
+    exp.add_argument("--out", type=Path, required=True)
+    exp.add_argument("--target-set", default="mjolnir22", help="built-in set to export (default mjolnir22)")
+    exp.add_argument(
+        "--glove-set",
+        default="mjolnir101",
+        help="packaged GloVe table: mjolnir101 (MJOLNIR's v1 table) or all_types",
+    )
+    exp.add_argument(
+        "--glove", type=Path, help="HDF5 with one GloVe vector per type (e.g. SAVN's glove_map300d.hdf5)"
+    )
+    exp.set_defaults(func=_export_episodes)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from mapless.offline.writer import export_scene
+    from mapless.scenes.catalogue import resolve_scenes
+    from mapless.sim.cache import load_or_build
+
+    config = sim_config_from(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in resolve_scenes(args.scenes):
+        start = time.perf_counter()
+        data = load_or_build(name, config, args.cache_dir)
+        folder = export_scene(
+            data, args.out, args.format, compression=None if args.no_compression else "gzip"
+        )
+        print(
+            f"{folder}: {data.n_poses} poses, {len(set(data.visible_matrix_csr[1].tolist()))} visible "
+            f"instances, {time.perf_counter() - start:.1f} s"
+        )
+    return 0
+
+
+def _scrape(args: argparse.Namespace) -> int:
+    from mapless.scenes.catalogue import resolve_scenes
+    from mapless.thor import ThorConfig, make_controller, scrape
+
+    try:
+        horizons = tuple(int(h) for h in args.horizons.split(","))
+    except ValueError:
+        raise MaplessError(f"--horizons {args.horizons!r} must be integers separated by commas") from None
+    extra = {
+        k: v
+        for k, v in (("commit_id", args.commit_id), ("local_executable_path", args.local_executable_path))
+        if v
+    }
+    config = ThorConfig(
+        visibility_distance=args.visibility_distance,
+        horizons=horizons,
+        field_of_view=args.field_of_view,
+        category_set=args.category_set,
+        platform=args.platform,
+        extra=extra,
+    )
+    scenes = resolve_scenes(args.scenes)
+    controller = make_controller(scenes[0], config)
+    try:
+        for name in scenes:
+            start = time.perf_counter()
+            folder = scrape(
+                controller, name, args.out, args.format, config, images=args.images, progress=True
+            )
+            print(f"{folder}: scraped in {time.perf_counter() - start:.0f} s")
+    finally:
+        controller.stop()
+    return 0
+
+
+def _scene_folders(paths: list[Path]) -> list[Path]:
+    folders = []
+    for path in paths:
+        if (path / "graph.json").exists() or not path.is_dir():
+            folders.append(path)
+        else:
+            found = sorted(p.parent for p in path.glob("*/graph.json"))
+            if not found:
+                raise MaplessError(
+                    f"{path}: neither a scene folder nor a folder of scene folders (no graph.json)"
+                )
+            folders.extend(found)
+    return folders
+
+
+def _check(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from mapless.offline.reader import load_offline_scene
+
+    for folder in _scene_folders(args.folders):
+        sd = load_offline_scene(
+            folder, args.category_set, "none" if args.no_features else "auto", visible_file=args.visible_file
+        )
+        moves = int((sd.successors != np.arange(sd.n_poses)[:, None]).sum())
+        targets = len(set(sd.visible_matrix_csr[1].tolist()))
+        print(
+            f"{folder}: {sd.scene} ({sd.room_type}), {sd.n_poses} poses, {moves} successful moves, "
+            f"{targets} visible instances, features {tuple(sd.features.shape[1:])} {sd.meta['feature_kind']}, "
+            f"boxes {'yes' if sd.meta['has_boxes'] else 'no'}"
+        )
+    return 0
+
+
+def _import_episodes(args: argparse.Namespace) -> int:
+    from mapless.episodes import evalsets
+    from mapless.offline.episodes import import_episode_file
+    from mapless.scenes.catalogue import SPLITS
+    from mapless.sim.cache import fingerprint
+    from mapless.sim.library import SceneLibrary
+
+    config = sim_config_from(args)
+    library = SceneLibrary.builtin(config, args.cache_dir)
+    report = import_episode_file(
+        args.file,
+        scene_data=library.__getitem__,
+        max_target_distance=args.max_target_distance,
+        max_start_distance=args.max_start_distance,
+    )
+    print(f"{args.file}: {report.summary()}")
+    if args.show_skipped:
+        for index, reason in report.skipped:
+            print(f"  #{index}: {reason}")
+    if args.out is not None:
+        if not report.episodes:
+            raise MaplessError(f"{args.file}: no episode could be mapped; nothing written")
+        numbers = {int(e.scene.removeprefix("FloorPlan")) % 100 for e in report.episodes}
+        # The file header names the scene range; pick the narrowest split holding every scene.
+        split = next(s for s in ("val", "test", "paper", "all") if numbers <= set(SPLITS[s]))
+        evalsets.save(args.out, report.episodes, split, args.target_set, 0, fingerprint(config))
+        print(f"wrote {args.out}: {report.mapped} episodes (split label {split})")
+    return 0
+
+
+def _glove_from_hdf5(path: Path) -> dict:
+    import h5py
+    import numpy as np
+
+    from mapless.offline.format import OfflineFormatError
+
+    try:
+        with h5py.File(path, "r") as f:
+            return {name: np.asarray(f[name][()], dtype=np.float32) for name in f}
+    except OSError as error:
+        raise OfflineFormatError(path, f"not a readable HDF5 file ({error})") from None
+
+
+def _export_episodes(args: argparse.Namespace) -> int:
+    from mapless.episodes import evalsets
+    from mapless.offline.episodes import write_episode_file
+
+    path = Path(args.source)
+    if not path.exists():
+        if args.source not in evalsets.EVAL_SPLITS:
+            raise MaplessError(
+                f"{args.source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}"
+            )
+        path = evalsets.builtin_path(args.source, args.target_set)
+    episodes, _ = evalsets.load(path)
+    if args.glove is not None:
+        embeddings = _glove_from_hdf5(args.glove)
+    else:
+        from mapless.knowledge.glove import glove_table
+
+        embeddings = glove_table(args.glove_set)
+    count = write_episode_file(episodes, args.out, args.format, embeddings=embeddings)
+    print(f"wrote {args.out}: {count} episodes in the {args.format} pickle format")
+    return 0

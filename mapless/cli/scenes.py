@@ -1,0 +1,148 @@
+"""``mapless scenes build | list | show | check | targets``."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mapless.cli.common import add_sim_arguments, parse_pose, sim_config_from
+from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
+from mapless.scenes.categories import targets
+from mapless.scenes.layout import load_scene
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("scenes", help="build, list, inspect and check the built-in scenes")
+    sub = parser.add_subparsers(dest="scenes_command", required=True)
+
+    build = sub.add_parser("build", help="precompute and cache scenes (all 120 by default)")
+    build.add_argument(
+        "scenes",
+        nargs="?",
+        default="all",
+        help="split name, split:room, or FloorPlan names (comma-separated)",
+    )
+    build.add_argument("--workers", type=int, default=2)
+    build.add_argument("--rebuild", action="store_true", help="ignore existing cache entries")
+    add_sim_arguments(build)
+    build.set_defaults(func=_build)
+
+    listing = sub.add_parser("list", help="scenes with room type, split, object and grid counts")
+    listing.add_argument("scenes", nargs="?", default="all")
+    listing.set_defaults(func=_list)
+
+    show = sub.add_parser("show", help="top-down map and egocentric view of a scene as a PNG")
+    show.add_argument("scene")
+    show.add_argument("--pose", type=parse_pose, help="x,z,yaw,horizon (default: first reachable pose)")
+    show.add_argument("--target", action="append", default=[], help="object type to highlight")
+    show.add_argument("--out", type=Path, required=True)
+    add_sim_arguments(show)
+    show.set_defaults(func=_show)
+
+    check = sub.add_parser(
+        "check", help="per scene: poses, reachable targets, share of poses seeing an object"
+    )
+    check.add_argument("scenes", nargs="?", default="all")
+    check.add_argument("--target-set", default="mjolnir22")
+    add_sim_arguments(check)
+    check.set_defaults(func=_check)
+
+    target_parser = sub.add_parser("targets", help="how many scenes of each split contain each target")
+    target_parser.add_argument("--target-set", default="mjolnir22")
+    target_parser.set_defaults(func=_targets)
+
+
+def _build(args: argparse.Namespace) -> int:
+    from mapless.sim.cache import build_many, cache_path
+
+    config = sim_config_from(args)
+    scenes = resolve_scenes(args.scenes)
+    start = time.perf_counter()
+    build_many(scenes, config, args.cache_dir, workers=args.workers, rebuild=args.rebuild)
+    folder = cache_path(scenes[0], config, args.cache_dir).parent
+    print(f"{len(scenes)} scenes ready in {time.perf_counter() - start:.0f} s; cache: {folder}")
+    return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    print(f"{'scene':<14}{'room':<13}{'split':<7}{'objects':>8}{'grid':>6}")
+    for name in resolve_scenes(args.scenes):
+        scene = load_scene(name)
+        print(
+            f"{name:<14}{scene.room_type:<13}{scene.split:<7}{len(scene.objects):>8}{len(scene.reachable):>6}"
+        )
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mapless.sim.library import SceneLibrary
+    from mapless.sim.pictures import draw_top_down, egocentric_view
+
+    config = sim_config_from(args)
+    scene = load_scene(args.scene)
+    if args.pose is None:
+        x, z = scene.reachable[0]
+        pose = (float(x), float(z), 0, config.horizons[0])
+    else:
+        pose = args.pose
+        SceneLibrary.builtin(config, args.cache_dir).pose_of(scene.name, pose)  # validates, names nearest
+    fig, (top, ego) = plt.subplots(1, 2, figsize=(13, 6))
+    draw_top_down(top, scene, config, tuple(args.target), pose)
+    ego.imshow(egocentric_view(scene, config, *pose, size=210))
+    ego.set_title(f"egocentric view at {pose}")
+    ego.axis("off")
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=90)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from mapless.sim.library import SceneLibrary
+
+    config = sim_config_from(args)
+    library = SceneLibrary.builtin(config, args.cache_dir)
+    room_targets = targets(args.target_set)
+    print(
+        f"{'scene':<14}{'poses':>7}{'positions':>10}  {'targets reachable':<20}{'sees object':>12}{'sees target':>12}"
+    )
+    for name in resolve_scenes(args.scenes):
+        data = library[name]
+        wanted = [t for t in room_targets[data.room_type] if len(data.instances_of(t))]
+        reachable = [t for t in wanted if (data.target_distances(t)[data.horizon == 0] >= 0).any()]
+        sees_object = np.diff(data.view_ptr) > 0
+        goal_any = np.zeros(data.n_poses, bool)
+        for t in wanted:
+            goal_any |= data.goal_mask(t)
+        print(
+            f"{name:<14}{data.n_poses:>7}{data.n_poses // (len(config.yaws) * len(config.horizons)):>10}  "
+            f"{len(reachable)}/{len(wanted)} ({len(room_targets[data.room_type])} in set){'':<4}"
+            f"{sees_object.mean():>11.0%}{goal_any.mean():>12.0%}"
+        )
+    return 0
+
+
+def _targets(args: argparse.Namespace) -> int:
+    room_targets = targets(args.target_set)
+    splits = ("train", "val", "test")
+    print(f"{'room':<13}{'target':<16}" + "".join(f"{s:>7}" for s in splits))
+    for room in ROOM_TYPES:
+        for target in room_targets[room]:
+            counts = {s: 0 for s in splits}
+            for name in scene_names("all", (room,)):
+                if load_scene(name).instances_of(target):
+                    counts[split_of(name)] += 1
+            print(
+                f"{room:<13}{target:<16}"
+                + "".join(f"{counts[s]:>4}/{len(scene_names(s, (room,)))}" for s in splits)
+            )
+    return 0

@@ -1,0 +1,61 @@
+"""``mapless train CONFIG.yaml [--set key=value ...]`` and ``mapless train --resume RUN_DIR``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from mapless.config import load_config
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "train",
+        help="train a model (batched or async A3C / meta-RL); writes a run folder",
+        description="Train a model. Under torchrun every rank runs this command (docs/training.md).",
+    )
+    parser.add_argument("config", nargs="?", type=Path, help="YAML TrainConfig (experiments/train_*.yaml)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set model.name=savn --set episodes=1000",
+    )
+    parser.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_DIR",
+        help="continue a run from its last checkpoint (--set may extend the budget)",
+    )
+    parser.add_argument(
+        "--run-dir", type=Path, help="run folder (default: runs/<config>__<model>__<mode>__s<seed>__<time>)"
+    )
+    parser.add_argument(
+        "--runs-root", type=Path, default=Path("runs"), help="parent of the default run folder"
+    )
+    parser.add_argument("--device", help="shortcut for --set device=...")
+    parser.set_defaults(func=_train)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from mapless.config import ConfigError
+    from mapless.train.config import TrainConfig
+    from mapless.train.run import default_run_dir, resume_config, train
+
+    overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
+    if args.resume is not None:
+        if args.config is not None:
+            raise ConfigError("give either CONFIG.yaml or --resume RUN_DIR, not both")
+        config, state = resume_config(args.resume, overrides)
+        run_dir = args.resume
+    else:
+        if args.config is None:
+            raise ConfigError("mapless train needs CONFIG.yaml (or --resume RUN_DIR)")
+        config = load_config(TrainConfig, args.config, overrides)
+        state = None
+        run_dir = args.run_dir or default_run_dir(config, args.runs_root, args.config.stem)
+    summary = train(config, run_dir, resume=state)
+    print(json.dumps({"run_dir": str(run_dir), **{k: round(v, 3) for k, v in summary.items()}}))
+    return 0

@@ -1,0 +1,174 @@
+"""Figures of the paper: ratio-of-exploration curves (Figure 3) and top-down trajectories of several
+models on the same episode (Figure 4), a failure case (Figure 5), and an optional egocentric GIF."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from mapless.evaluate.metrics import EpisodeResult, exploration_curve
+from mapless.sim.config import SimConfig
+from mapless.sim.library import SceneLibrary
+
+MODEL_COLOURS = (
+    "tab:red",
+    "tab:blue",
+    "tab:green",
+    "tab:purple",
+    "tab:orange",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def exploration_figure(
+    results: Mapping[str, Sequence[EpisodeResult]], path: Path, horizon: int = 100, min_episodes: int = 10
+) -> dict[str, list[float]]:
+    """Figure 3: mean ratio of exploration against the step index, one curve per model.
+
+    A curve stops where fewer than ``min_episodes`` episodes are still running (its mean would be
+    noise). Returns the plotted curves (NaN beyond the cut) for the JSON report.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    curves = {}
+    for i, (label, res) in enumerate(results.items()):
+        mean, count = exploration_curve(res, horizon)
+        mean = np.where(count >= min_episodes, mean, np.nan)
+        steps = np.arange(1, len(mean) + 1)
+        ax.plot(steps, 100 * mean, label=label, color=MODEL_COLOURS[i % len(MODEL_COLOURS)])
+        curves[label] = [None if np.isnan(v) else float(v) for v in mean]
+    ax.set_xlabel("step")
+    ax.set_ylabel("ratio of exploration (%)")
+    ax.set_ylim(0, 105)
+    ax.set_title("Ratio of exploration (distinct states / steps)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return curves
+
+
+def _path_xy(library: SceneLibrary, result: EpisodeResult) -> np.ndarray:
+    data = library[result.scene]
+    poses = np.array((result.start_pose, *result.poses), dtype=np.int64)
+    return np.stack([data.x[poses], data.z[poses]], axis=1)
+
+
+def trajectory_figure(
+    results: Mapping[str, EpisodeResult],
+    library: SceneLibrary,
+    path: Path,
+    sim: SimConfig | None = None,
+    parents: Sequence[str] = (),
+    title: str | None = None,
+) -> None:
+    """Figures 4/5: one top-down panel per model on the same episode: the target and its parents
+    highlighted, the path from start (circle) to end (square: Done; cross: time out), the final view
+    cone; the panel title says success or failure, length and optimal length."""
+    from mapless.scenes.layout import load_scene
+    from mapless.sim.pictures import draw_top_down
+
+    plt = _pyplot()
+    sim = sim or SimConfig()
+    first = next(iter(results.values()))
+    scene = load_scene(first.scene)
+    data = library[first.scene]
+    n = len(results)
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5.2), squeeze=False)
+    for i, (ax, (label, result)) in enumerate(zip(axes[0], results.items(), strict=True)):
+        if result.scene != first.scene or result.index != first.index:
+            raise ValueError("trajectory_figure compares models on one and the same episode")
+        end = result.poses[-1] if result.poses else result.start_pose
+        end_pose = (float(data.x[end]), float(data.z[end]), int(data.yaw[end]), int(data.horizon[end]))
+        draw_top_down(ax, scene, sim, highlight_types=(result.target, *parents), pose=end_pose)
+        xy = _path_xy(library, result)
+        colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=colour, linewidth=2.2, alpha=0.85, zorder=6)
+        ax.plot(*xy[0], "o", color="white", markeredgecolor="black", markersize=9, zorder=7)
+        ax.plot(
+            *xy[-1],
+            "s" if result.called_done else "X",
+            color=colour,
+            markeredgecolor="black",
+            markersize=10,
+            zorder=7,
+        )
+        outcome = "success" if result.success else ("wrong Done" if result.called_done else "time out")
+        ax.set_title(f"{label}: {outcome}\nL = {result.length}, L* = {result.optimal_length}", fontsize=10)
+    fig.suptitle(title or f"{first.scene}: find {first.target} (parents: {', '.join(parents) or 'none'})")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def trajectory_gif(
+    result: EpisodeResult,
+    library: SceneLibrary,
+    path: Path,
+    sim: SimConfig | None = None,
+    size: int = 126,
+    every: int = 1,
+) -> None:
+    """Egocentric semantic views along a trajectory, as an animated GIF (Pillow)."""
+    from PIL import Image
+
+    from mapless.scenes.layout import load_scene
+    from mapless.sim.pictures import egocentric_view
+
+    sim = sim or SimConfig()
+    scene = load_scene(result.scene)
+    data = library[result.scene]
+    poses = (result.start_pose, *result.poses)[::every]
+    frames = [
+        Image.fromarray(
+            egocentric_view(
+                scene, sim, float(data.x[p]), float(data.z[p]), int(data.yaw[p]), int(data.horizon[p]), size
+            )
+        )
+        for p in poses
+    ]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=250, loop=0)
+
+
+def pick_showcase(
+    results: Mapping[str, Sequence[EpisodeResult]], focus: str
+) -> tuple[int | None, int | None]:
+    """Episode indices for Figure 4 (``focus`` succeeds where most other models fail, shortest
+    L*-normalised path among those) and Figure 5 (a ``focus`` failure that timed out, else any)."""
+    by_index = {label: {r.index: r for r in res} for label, res in results.items()}
+    mine = by_index[focus]
+    others = [m for label, m in by_index.items() if label != focus]
+
+    def others_failed(i: int) -> int:
+        return sum(1 for m in others if i in m and not m[i].success)
+
+    wins = [r for r in mine.values() if r.success]
+    showcase = None
+    if wins:
+        best = max(
+            wins, key=lambda r: (others_failed(r.index), r.optimal_length / max(r.length, 1), -r.index)
+        )
+        showcase = best.index
+    failures = [r for r in mine.values() if not r.success]
+    failure = None
+    if failures:
+        timed_out = [r for r in failures if not r.called_done] or failures
+        failure = min(timed_out, key=lambda r: r.index).index
+    return showcase, failure

@@ -1,0 +1,143 @@
+"""Evaluation reports: JSON records and markdown tables.
+
+Rates (SR, SPL, Done, failed actions, exploration) are shown in percent, as the papers do; episode
+length in steps. A cell is ``mean`` for one seed and ``mean ± std`` over seeds, followed by the 95 %
+bootstrap interval over episodes in brackets (mapless.evaluate.stats).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+from mapless.evaluate.metrics import EpisodeResult, summarize
+from mapless.evaluate.stats import Estimate, seed_estimates
+from mapless.scenes.catalogue import ROOM_TYPES
+
+#: column key -> (header, shown in percent)
+COLUMNS: dict[str, tuple[str, bool]] = {
+    "success": ("SR", True),
+    "spl": ("SPL", True),
+    "l5_success": ("SR L≥5", True),
+    "l5_spl": ("SPL L≥5", True),
+    "ep_length": ("length", False),
+    "done_rate": ("Done", True),
+    "failed_action_rate": ("failed", True),
+    "exploration_ratio": ("explore", True),
+}
+MAIN_COLUMNS = ("success", "spl", "l5_success", "l5_spl")
+ROOM_NAMES = {
+    "kitchen": "Kitchen",
+    "living_room": "Living room",
+    "bedroom": "Bedroom",
+    "bathroom": "Bathroom",
+}
+
+
+def _scale(key: str) -> float:
+    return 100.0 if COLUMNS.get(key, ("", True))[1] else 1.0
+
+
+def format_estimate(key: str, estimate: Estimate | dict, interval: bool = True) -> str:
+    """``61.9 ± 1.2 [58.4, 65.0]`` (± only with several seeds)."""
+    e = estimate if isinstance(estimate, dict) else estimate.to_dict()
+    if e["mean"] is None or math.isnan(e["mean"]):
+        return "–"
+    s = _scale(key)
+    digits = 1
+    text = f"{e['mean'] * s:.{digits}f}"
+    if e["seeds"] > 1:
+        text += f" ± {e['std'] * s:.{digits}f}"
+    if interval and not math.isnan(e["ci_low"]):
+        text += f" [{e['ci_low'] * s:.{digits}f}, {e['ci_high'] * s:.{digits}f}]"
+    return text
+
+
+def format_value(key: str, value: float) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    return f"{value * _scale(key):.1f}"
+
+
+def markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def model_record(
+    label: str,
+    per_seed: Sequence[Sequence[EpisodeResult]],
+    meta: dict | None = None,
+    keep_episodes: bool = True,
+) -> dict:
+    """JSON-able record of one model on one episode set: estimates over seeds, per-seed summaries
+    (overall and per room type) and, optionally, every episode of every seed."""
+    estimates = seed_estimates(per_seed)
+    record = {
+        "model": label,
+        **(meta or {}),
+        "seeds": len(per_seed),
+        "estimates": {k: v.to_dict() for k, v in estimates.items()},
+        "per_seed": [summarize(results) for results in per_seed],
+        "rooms": _room_estimates(per_seed),
+    }
+    if keep_episodes:
+        record["episodes"] = [[r.to_dict() for r in results] for results in per_seed]
+    return record
+
+
+def _room_estimates(per_seed: Sequence[Sequence[EpisodeResult]]) -> dict[str, dict]:
+    out = {}
+    for room in ROOM_TYPES:
+        subsets = [[r for r in results if r.room_type == room] for results in per_seed]
+        if subsets and all(subsets):
+            out[room] = {k: v.to_dict() for k, v in seed_estimates(subsets).items()}
+    return out
+
+
+def model_table(records: Sequence[dict], columns: Sequence[str] = MAIN_COLUMNS, interval: bool = True) -> str:
+    """One row per model record (``model_record``)."""
+    header = ["model", *(COLUMNS[c][0] for c in columns)]
+    rows = []
+    for rec in records:
+        rows.append([rec["model"], *(_cell(rec["estimates"], c, interval) for c in columns)])
+    return markdown(header, rows)
+
+
+def _cell(estimates: dict, key: str, interval: bool) -> str:
+    return format_estimate(key, estimates[key], interval) if key in estimates else "–"
+
+
+def room_table(record: dict, columns: Sequence[str] = MAIN_COLUMNS) -> str:
+    """Per-room-type breakdown of one model record, plus the overall row."""
+    header = ["room type", *(COLUMNS[c][0] for c in columns)]
+    rows = [
+        [ROOM_NAMES[room], *(_cell(est, c, False) for c in columns)] for room, est in record["rooms"].items()
+    ]
+    rows.append(["All", *(_cell(record["estimates"], c, False) for c in columns)])
+    return markdown(header, rows)
+
+
+def details_table(records: Sequence[dict]) -> str:
+    """Secondary metrics (mean over seeds, overall): length, Done, failed actions, exploration."""
+    cols = ("ep_length", "done_rate", "failed_action_rate", "exploration_ratio")
+    header = ["model", *(COLUMNS[c][0] for c in cols)]
+    rows = []
+    for rec in records:
+        per_seed = [s["overall"] for s in rec["per_seed"]]
+        rows.append(
+            [rec["model"], *(format_value(c, sum(s[c] for s in per_seed) / len(per_seed)) for c in cols)]
+        )
+    return markdown(header, rows)
+
+
+def write_json(payload: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=1, allow_nan=True))
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(Path(path).read_text())

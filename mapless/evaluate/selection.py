@@ -1,0 +1,175 @@
+"""Checkpoint selection and the two evaluation protocols.
+
+* ``standard`` (SAVN's ``full_eval.py``): evaluate every checkpoint of a run on ``val`` (x21-x25),
+  keep the best by success rate (ties: SPL, then the earlier checkpoint), evaluate it once on
+  ``test`` (x26-x30) and report that.
+* ``paper`` (what the paper and MJOLNIR did): select *and* report on the same episodes of x21-x30.
+  The reported number is then a maximum over checkpoints on the test episodes, an optimistic
+  estimate; every report made with it says so.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from mapless.episodes import evalsets
+from mapless.episodes.episode import Episode
+from mapless.errors import MaplessError
+from mapless.evaluate.metrics import EpisodeResult, aggregate
+from mapless.evaluate.report import read_json, write_json
+from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate
+from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
+
+PROTOCOLS: dict[str, tuple[str, str, str]] = {
+    "standard": ("val", "test", "selected on val (x21-x25), reported once on test (x26-x30)"),
+    "paper": (
+        "paper",
+        "paper",
+        "PAPER PROTOCOL: selected and reported on the same x21-x30 episodes (optimistic, as in the paper/MJOLNIR)",
+    ),
+}
+
+
+def load_episodes(
+    split: str,
+    episodes_file: str | Path | None = None,
+    per_room: int | None = None,
+    rooms: Sequence[str] = ROOM_TYPES,
+    sim_fingerprint: str | None = None,
+    target_set: str = "mjolnir22",
+) -> list[Episode]:
+    """The fixed episodes of ``split`` (built-in set unless ``episodes_file``), keeping the first
+    ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small budgets evaluate a
+    subset of the very episodes the full budget uses."""
+    path = Path(episodes_file) if episodes_file else evalsets.builtin_path(split, target_set)
+    if not path.exists():
+        raise MaplessError(
+            f"no episode file {path}; make the fixed sets with `mapless episodes make` or pass --episodes FILE"
+        )
+    episodes, _ = evalsets.load(path, sim_fingerprint)
+    kept: list[Episode] = []
+    count = dict.fromkeys(rooms, 0)
+    for episode in episodes:
+        room = room_type_of(episode.scene)
+        if room in count and (per_room is None or count[room] < per_room):
+            kept.append(episode)
+            count[room] += 1
+    if not kept:
+        raise MaplessError(f"{path} has no episodes of room types {list(rooms)}")
+    return kept
+
+
+def episodes_digest(episodes: Sequence[Episode]) -> str:
+    text = json.dumps([e.to_dict() for e in episodes], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
+    """``(training episodes, model file)`` of every snapshot of a run, plus its final model when it
+    is not already a snapshot of the same episode count."""
+    from mapless.train.checkpoint import FINAL_MODEL_FILE, load_file, snapshots
+
+    run_dir = Path(run_dir)
+    found = snapshots(run_dir)
+    final = run_dir / FINAL_MODEL_FILE
+    if final.is_file():
+        episodes = int(load_file(final).get("counters", {}).get("episodes", -1))
+        if episodes not in {e for e, _ in found}:
+            found.append((episodes, final))
+    if not found:
+        raise MaplessError(f"run folder {run_dir} holds no model snapshot or final model")
+    return sorted(found)
+
+
+def best_index(metrics: Sequence[dict]) -> int:
+    """Highest success rate; ties broken by SPL, then by the earliest checkpoint."""
+    return max(range(len(metrics)), key=lambda i: (metrics[i]["success"], metrics[i]["spl"], -i))
+
+
+@dataclass
+class Selection:
+    protocol: str
+    label: str
+    chosen: str
+    chosen_episodes: int
+    scores: list[dict]  # per candidate: episodes, path, success, spl, l5_success, l5_spl
+    report: EvalRun
+
+    def summary(self) -> dict:
+        return {
+            "protocol": self.protocol,
+            "protocol_label": self.label,
+            "chosen": self.chosen,
+            "chosen_episodes": self.chosen_episodes,
+            "candidates": self.scores,
+        }
+
+
+def _cached_evaluate(
+    spec: AgentSpec,
+    episodes: list[Episode],
+    settings: EvalSettings,
+    library: LibrarySpec,
+    cache: Path | None,
+) -> EvalRun:
+    """Evaluate, reusing ``cache`` when it holds the same checkpoint, episodes and settings."""
+    key = {"spec": asdict(spec), "episodes": episodes_digest(episodes), "settings": asdict(settings)}
+    if cache is not None and cache.is_file():
+        stored = read_json(cache)
+        if stored.get("key") == json.loads(json.dumps(key)):
+            results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
+            return EvalRun(results, stored["seconds"], stored["steps"])
+    run = evaluate(spec, episodes, settings, library)
+    if cache is not None:
+        write_json(
+            {"key": key, "seconds": run.seconds, "steps": run.steps, "metrics": aggregate(run.results),
+             "episodes": [r.to_dict() for r in run.results]},
+            cache,
+        )  # fmt: skip
+    return run
+
+
+def select_and_report(
+    run_dir: str | Path,
+    select_episodes: list[Episode],
+    report_episodes: list[Episode] | None,
+    settings: EvalSettings,
+    library: LibrarySpec,
+    protocol: str = "standard",
+    progress: Callable[[str], None] | None = None,
+) -> Selection:
+    """Evaluate every candidate of ``run_dir`` on ``select_episodes``, pick the best, and evaluate it
+    once on ``report_episodes`` (``paper`` protocol: reuse the selection run on the same episodes).
+    Per-checkpoint results are cached under ``run_dir/eval/``."""
+    if protocol not in PROTOCOLS:
+        raise MaplessError(f"unknown protocol {protocol!r}; choose one of {list(PROTOCOLS)}")
+    select_split, report_split, label = PROTOCOLS[protocol]
+    run_dir = Path(run_dir)
+    scores, runs = [], []
+    for episodes_done, path in candidates(run_dir):
+        spec = AgentSpec(checkpoint=str(path))
+        cache = run_dir / "eval" / f"{select_split}_{path.stem}.json"
+        run = _cached_evaluate(spec, select_episodes, settings, library, cache)
+        m = aggregate(run.results)
+        scores.append(
+            {
+                "episodes": episodes_done,
+                "path": str(path),
+                **{k: m[k] for k in ("success", "spl", "l5_success", "l5_spl")},
+            }
+        )
+        runs.append(run)
+        if progress:
+            progress(f"  {path.name}: {select_split} SR {m['success']:.3f} SPL {m['spl']:.3f}")
+    best = best_index(scores)
+    chosen = scores[best]["path"]
+    if protocol == "paper" or report_episodes is None:
+        report = runs[best]
+    else:
+        cache = run_dir / "eval" / f"{report_split}_{Path(chosen).stem}.json"
+        report = _cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
+    return Selection(protocol, label, chosen, int(scores[best]["episodes"]), scores, report)

@@ -1,0 +1,479 @@
+"""The paper's experiments as pipelines behind ``mapless reproduce EXPERIMENT --budget B``.
+
+Each experiment trains its runs (skipped when a finished run of the same configuration exists),
+selects checkpoints (``standard`` protocol: on val, reported once on test), evaluates, and writes
+``reports/EXPERIMENT/`` (``EXPERIMENT.md``, ``EXPERIMENT.json``, PNGs):
+
+* ``table1``: every model on the test split, ALL and L>=5 (random needs no training).
+* ``table2``: cross-room-type generalisation: one run per model and training room type
+  (K-single, L-single, Be-single, Ba-single), each tested on all four room types.
+* ``table3``: ablation: cvmeta without the hierarchical relationships (the target->parent graph
+  edges) of one room type at a time, next to the full model.
+* ``figure3``: ratio-of-exploration curves of the Table 1 models.
+* ``figures45``: top-down trajectories of the Table 1 models on one episode where the focus model
+  succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF.
+
+Configurations live in ``experiments/<experiment>_<budget>.yaml`` (:class:`ExperimentConfig`).
+Runs are stored under ``<runs_dir>/<model>__<variant>__s<seed>__<hash>`` where the hash covers the
+whole training configuration, so experiments share identical runs (figure3 reuses table1's).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from mapless.config import ConfigError, apply_overrides, from_dict, load_config, to_dict
+from mapless.errors import MaplessError, UnknownNameError
+from mapless.evaluate.metrics import EpisodeResult
+from mapless.evaluate.report import (
+    ROOM_NAMES,
+    details_table,
+    format_estimate,
+    markdown,
+    model_record,
+    model_table,
+    room_table,
+    write_json,
+)
+from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
+from mapless.evaluate.selection import PROTOCOLS, load_episodes, select_and_report
+from mapless.evaluate.stats import seed_estimates
+from mapless.scenes.catalogue import ROOM_TYPES
+
+EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45")
+BUDGETS = ("smoke", "small", "full")
+ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
+
+
+@dataclass(frozen=True)
+class ExperimentEval:
+    """How runs are evaluated.
+
+    protocol: ``standard`` (select on val, report on test) or ``paper`` (select and report on x21-x30).
+    per_room: the first N episodes per room type of the fixed sets (250 = all).
+    select: evaluate every checkpoint and select (False: the final model only).
+    select_file / report_file: episode files replacing the built-in val / test sets (tests).
+    """
+
+    protocol: Literal["standard", "paper"] = "standard"
+    per_room: int = 250
+    rooms: tuple[str, ...] = ROOM_TYPES
+    select: bool = True
+    select_file: str | None = None
+    report_file: str | None = None
+    batch_size: int = 32
+    workers: int = 2
+    seed: int = 0
+    greedy: bool = False
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment at one budget.
+
+    models: the compared models (Table 1/2, figures); Table 3 always ablates ``focus``.
+    seeds: training seeds per run (mean ± std over them).
+    train: TrainConfig fields shared by every run (nested mapping, validated by TrainConfig).
+    per_model: TrainConfig overrides per model name (e.g. a smaller batch for the meta models).
+    rooms: room types of Table 2 (training rooms) and Table 3 (ablated rooms).
+    focus: the paper's model (cvmeta), for Table 3 and the showcase figures.
+    runs_dir: where training runs go (shared between experiments).
+    """
+
+    experiment: str = "table1"
+    budget: str = "smoke"
+    models: tuple[str, ...] = ("random", "a3c", "cvmeta")
+    seeds: int = 1
+    train: dict = field(default_factory=dict)
+    per_model: dict = field(default_factory=dict)
+    eval: ExperimentEval = field(default_factory=ExperimentEval)
+    rooms: tuple[str, ...] = ROOM_TYPES
+    focus: str = "cvmeta"
+    runs_dir: str = "runs/experiments"
+    gif: bool = True
+
+    def __post_init__(self) -> None:
+        if self.experiment not in EXPERIMENTS:
+            raise UnknownNameError("experiment", self.experiment, EXPERIMENTS)
+        if self.seeds < 1:
+            raise ConfigError(f"config key 'seeds': must be >= 1, got {self.seeds}")
+        from mapless.models import MODELS
+
+        for name in (*self.models, self.focus):
+            if name not in MODELS:
+                raise UnknownNameError("model", name, MODELS)
+        for room in (*self.rooms, *self.eval.rooms):
+            if room not in ROOM_TYPES:
+                raise UnknownNameError("room type", room, ROOM_TYPES)
+
+
+def config_path(experiment: str, budget: str, root: Path | None = None) -> Path:
+    """``experiments/<experiment>_<budget>.yaml`` of the repository (or of ``root``)."""
+    base = root or Path(str(resources.files("mapless"))).parent / "experiments"
+    return base / f"{experiment}_{budget}.yaml"
+
+
+def load_experiment(
+    experiment: str,
+    budget: str,
+    path: Path | None = None,
+    overrides: list[str] | None = None,
+    seeds: int | None = None,
+) -> ExperimentConfig:
+    path = path or config_path(experiment, budget)
+    if not path.is_file():
+        raise MaplessError(
+            f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
+        )
+    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds else [])]
+    config = load_config(ExperimentConfig, path, extra)
+    if config.experiment != experiment:
+        raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
+    return config
+
+
+# -- training ----------------------------------------------------------------------------------------
+def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
+    """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and seed."""
+    from mapless.train.config import TrainConfig
+
+    data = json.loads(json.dumps(config.train))
+    for layer in (config.per_model.get(model, {}), extra or {}):
+        data = _merge(data, layer)
+    data = apply_overrides(data, [f"model.name={model}", f"seed={seed}"])
+    return from_dict(TrainConfig, data)
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = (
+            _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+        )
+    return out
+
+
+def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
+    blob = json.dumps(to_dict(dataclasses.replace(train_cfg, progress=False)), sort_keys=True)
+    digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
+    return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
+
+
+def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
+    """Train unless ``run_dir`` already holds a finished run (its final model)."""
+    from mapless.config import save_config
+    from mapless.train.checkpoint import FINAL_MODEL_FILE
+
+    if (run_dir / FINAL_MODEL_FILE).is_file():
+        log(f"  reusing finished run {run_dir}")
+        return run_dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(train_cfg, run_dir / "config.yaml")
+    log(f"  training {train_cfg.model.name} (seed {train_cfg.seed}) -> {run_dir}")
+    if train_cfg.mode == "async":
+        from mapless.train.hogwild import AsyncTrainer as Trainer
+    else:
+        from mapless.train.batched import BatchedTrainer as Trainer
+    stats = Trainer(train_cfg, run_dir).run()
+    log(
+        f"    {stats.get('episodes', 0):.0f} episodes, {stats.get('frames', 0):.0f} frames in {stats.get('seconds', 0):.0f} s"
+    )
+    return run_dir
+
+
+# -- evaluation --------------------------------------------------------------------------------------
+@dataclass
+class Evaluator:
+    """Evaluation settings and episode sets of one experiment."""
+
+    config: ExperimentConfig
+    log: Callable[[str], None]
+
+    def __post_init__(self) -> None:
+        e = self.config.eval
+        select_split, report_split, self.protocol_label = PROTOCOLS[e.protocol]
+        self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
+        self.select_episodes = load_episodes(select_split, e.select_file, e.per_room, e.rooms)
+        self.report_episodes = (
+            self.select_episodes
+            if e.protocol == "paper"
+            else load_episodes(report_split, e.report_file, e.per_room, e.rooms)
+        )
+
+    def library(self, train_cfg=None) -> LibrarySpec:
+        if train_cfg is None:
+            return LibrarySpec()
+        return LibrarySpec(sim=train_cfg.env.sim, cache_dir=train_cfg.env.cache_dir)
+
+    def untrained(self, model: str) -> tuple[list[EpisodeResult], dict]:
+        run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.library())
+        self.log(f"  {model}: {len(run.results)} episodes, {run.steps_per_second:.0f} steps/s")
+        return run.results, {"steps_per_second": run.steps_per_second}
+
+    def trained(self, run_dir: Path, train_cfg) -> tuple[list[EpisodeResult], dict]:
+        settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
+        if self.config.eval.select:
+            sel = select_and_report(
+                run_dir, self.select_episodes, self.report_episodes, settings, self.library(train_cfg),
+                self.config.eval.protocol, progress=self.log,
+            )  # fmt: skip
+            self.log(f"  chose {Path(sel.chosen).name} ({sel.chosen_episodes} training episodes)")
+            return sel.report.results, {
+                "selection": sel.summary(),
+                "steps_per_second": sel.report.steps_per_second,
+            }
+        from mapless.train.checkpoint import resolve_model_file
+
+        spec = AgentSpec(checkpoint=str(resolve_model_file(run_dir)))
+        run = evaluate(spec, self.report_episodes, settings, self.library(train_cfg))
+        return run.results, {"steps_per_second": run.steps_per_second}
+
+
+def _model_results(config: ExperimentConfig, ev: Evaluator, model: str, variant: str = "all",
+                   extra: dict | None = None, log: Callable[[str], None] = print) -> tuple[list[list[EpisodeResult]], list[dict]]:  # fmt: skip
+    """Per-seed report results of one model (trained per seed, or untrained for ``random``)."""
+    per_seed, meta = [], []
+    if model == "random":
+        results, info = ev.untrained(model)
+        return [results], [info]
+    for s in range(config.seeds):
+        cfg = train_config(config, model, seed=1 + s, extra=extra)
+        run_dir = train_run(cfg, run_dir_for(config, cfg, variant), log)
+        results, info = ev.trained(run_dir, cfg)
+        per_seed.append(results)
+        meta.append({"run_dir": str(run_dir), **info})
+    return per_seed, meta
+
+
+def _header(config: ExperimentConfig, title: str, ev: Evaluator, command: str) -> list[str]:
+    return [
+        f"# {title}",
+        "",
+        f"Budget `{config.budget}`, {config.seeds} training seed(s); {len(ev.report_episodes)} report episodes "
+        f"({config.eval.per_room} per room type); protocol: {ev.protocol_label}.",
+        f"Command: `{command}`; finished {time.strftime('%Y-%m-%d %H:%M')}.",
+        "Cells: mean (± std over seeds) [95 % bootstrap interval over episodes], in %.",
+        "",
+    ]
+
+
+def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+    ev = Evaluator(config, log)
+    records, results = [], {}
+    for model in config.models:
+        log(f"{model}:")
+        per_seed, meta = _model_results(config, ev, model, log=log)
+        records.append(model_record(model, per_seed, {"runs": meta, "protocol": config.eval.protocol}))
+        results[model] = per_seed
+    lines = _header(config, "Table 1: navigation results on unseen scenes", ev, command)
+    lines += [
+        model_table(records),
+        "",
+        "Secondary metrics (mean over seeds):",
+        "",
+        details_table(records),
+        "",
+    ]
+    for rec in records:
+        lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
+    payload = {
+        "experiment": config.experiment,
+        "config": to_dict(config),
+        "protocol": ev.protocol_label,
+        "models": records,
+    }
+    _write(out, config.experiment, payload, lines)
+    return {"payload": payload, "results": results, "markdown": "\n".join(lines)}
+
+
+def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+    """Rows: model x training room type; columns: SR / SPL on each test room type and overall."""
+    ev = Evaluator(config, log)
+    rows, records = [], []
+    header = [
+        "model",
+        "trained on",
+        *(f"{ROOM_NAMES[r]} SR / SPL" for r in config.eval.rooms),
+        "All SR / SPL",
+    ]
+    for model in config.models:
+        for room in config.rooms:
+            log(f"{model}, {ROOM_ABBREV[room]}-single:")
+            extra = {"env": {"scenes": f"train:{room}"}}
+            if model == "random":
+                per_seed, meta = _model_results(config, ev, model, log=log)
+            else:
+                per_seed, meta = _model_results(config, ev, model, f"{ROOM_ABBREV[room]}-single", extra, log)
+            rec = model_record(
+                f"{model} {ROOM_ABBREV[room]}-single",
+                per_seed,
+                {"runs": meta, "train_room": room},
+                keep_episodes=False,
+            )
+            records.append(rec)
+            cells = []
+            for test_room in config.eval.rooms:
+                est = rec["rooms"].get(test_room)
+                cells.append(_pair(est))
+            rows.append([model, f"{ROOM_ABBREV[room]}-single", *cells, _pair(rec["estimates"])])
+    lines = _header(
+        config, "Table 2: generalisation across room types (train on one, test on all)", ev, command
+    )
+    lines += [markdown(header, rows), ""]
+    payload = {
+        "experiment": config.experiment,
+        "config": to_dict(config),
+        "protocol": ev.protocol_label,
+        "runs": records,
+    }
+    _write(out, config.experiment, payload, lines)
+    return {"payload": payload, "markdown": "\n".join(lines)}
+
+
+def _pair(estimates: dict | None) -> str:
+    if not estimates:
+        return "–"
+    return f"{format_estimate('success', estimates['success'], False)} / {format_estimate('spl', estimates['spl'], False)}"
+
+
+def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+    """The focus model with every room's relationships, then without those of one room type."""
+    ev = Evaluator(config, log)
+    variants = [("full", None)] + [(room, tuple(r for r in ROOM_TYPES if r != room)) for room in config.rooms]
+    records = []
+    for name, rooms in variants:
+        label = config.focus if rooms is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
+        log(f"{label}:")
+        extra = None if rooms is None else {"model": {"hierarchy_rooms": list(rooms)}}
+        per_seed, meta = _model_results(
+            config, ev, config.focus, "full" if rooms is None else f"no-{name}", extra, log
+        )
+        rec = model_record(
+            label,
+            per_seed,
+            {"runs": meta, "removed_room": None if rooms is None else name},
+            keep_episodes=False,
+        )
+        records.append(rec)
+    header = ["model", *(f"{ROOM_NAMES[r]} SR / SPL" for r in config.eval.rooms), "All SR / SPL"]
+    rows = [
+        [rec["model"], *(_pair(rec["rooms"].get(r)) for r in config.eval.rooms), _pair(rec["estimates"])]
+        for rec in records
+    ]
+    lines = _header(config, "Table 3: ablation of the hierarchical relationships", ev, command)
+    lines += [
+        "Each `<Room>_no_relationships` run drops that room type's target->parent edges from the hierarchical graph.",
+        "",
+        markdown(header, rows),
+        "",
+        model_table(records),
+        "",
+    ]
+    payload = {
+        "experiment": config.experiment,
+        "config": to_dict(config),
+        "protocol": ev.protocol_label,
+        "models": records,
+    }
+    _write(out, config.experiment, payload, lines)
+    return {"payload": payload, "markdown": "\n".join(lines)}
+
+
+def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+    from mapless.evaluate.figures import exploration_figure
+
+    table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
+    pooled = {m: [r for seed in per_seed for r in seed] for m, per_seed in table["results"].items()}
+    curves = exploration_figure(pooled, out / "figure3_exploration.png")
+    ratios = {m: seed_estimates(per_seed)["exploration_ratio"] for m, per_seed in table["results"].items()}
+    lines = [
+        "# Figure 3: ratio of exploration",
+        "",
+        "Distinct states explored / steps taken, per step index, averaged over the episodes still running.",
+        f"Command: `{command}`.",
+        "",
+        "![ratio of exploration](figure3_exploration.png)",
+        "",
+        markdown(
+            ["model", "final ratio (episode mean)"],
+            [[m, format_estimate("exploration_ratio", e)] for m, e in ratios.items()],
+        ),
+        "",
+    ]
+    payload = {
+        "experiment": config.experiment,
+        "curves": curves,
+        "final_ratio": {m: e.to_dict() for m, e in ratios.items()},
+    }
+    _write(out, config.experiment, payload, lines)
+    return {"payload": payload, "markdown": "\n".join(lines)}
+
+
+def run_figures45(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+    from mapless.evaluate.figures import pick_showcase, trajectory_figure, trajectory_gif
+    from mapless.knowledge import parents_of
+    from mapless.sim.library import SceneLibrary
+
+    table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
+    first_seed = {m: per_seed[0] for m, per_seed in table["results"].items()}
+    focus = config.focus if config.focus in first_seed else next(iter(first_seed))
+    showcase, failure = pick_showcase(first_seed, focus)
+    library = SceneLibrary.builtin()
+    lines = ["# Figures 4 and 5: trajectories", "", f"Command: `{command}`.", ""]
+    figures = {}
+    for name, index, caption in (
+        ("figure4_trajectories", showcase, f"{focus} succeeds; the other models on the same episode"),
+        ("figure5_failure", failure, f"a failure case of {focus}"),
+    ):
+        if index is None:
+            lines += [f"No episode for {name} ({caption}) in this run.", ""]
+            continue
+        chosen = {m: next(r for r in res if r.index == index) for m, res in first_seed.items()}
+        episode = chosen[focus]
+        parents = tuple(parents_of(episode.room_type, episode.target))
+        trajectory_figure(chosen, library, out / f"{name}.png", parents=parents)
+        figures[name] = {"index": index, "episode_id": episode.episode_id, "scene": episode.scene, "target": episode.target,
+                         "parents": list(parents), "outcomes": {m: {"success": r.success, "length": r.length} for m, r in chosen.items()}}  # fmt: skip
+        lines += [f"## {name}: {caption}", "", f"{episode.scene}, target {episode.target}, parents {', '.join(parents) or '–'}.", "",
+                  f"![{name}]({name}.png)", ""]  # fmt: skip
+        if config.gif and name == "figure4_trajectories":
+            trajectory_gif(episode, library, out / f"{name}_{focus}.gif", every=1)
+            lines += [f"Egocentric views of {focus}: `{name}_{focus}.gif`.", ""]
+    payload = {"experiment": config.experiment, "figures": figures}
+    _write(out, config.experiment, payload, lines)
+    return {"payload": payload, "markdown": "\n".join(lines)}
+
+
+PIPELINES: dict[str, Callable[..., dict]] = {
+    "table1": run_table1,
+    "table2": run_table2,
+    "table3": run_table3,
+    "figure3": run_figure3,
+    "figures45": run_figures45,
+}
+
+
+def _write(out: Path, name: str, payload: dict, lines: list[str]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(payload, out / f"{name}.json")
+    (out / f"{name}.md").write_text("\n".join(lines))
+
+
+def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log: Callable[[str], None] = print,
+              command: str = "") -> dict:  # fmt: skip
+    """Run one experiment end to end; returns the pipeline's payload and markdown."""
+    out = Path(reports_dir) / config.experiment
+    start = time.perf_counter()
+    result = PIPELINES[config.experiment](
+        config, out, log, command or f"mapless reproduce {config.experiment} --budget {config.budget}"
+    )
+    log(f"{config.experiment}: done in {time.perf_counter() - start:.0f} s; report in {out}")
+    return result

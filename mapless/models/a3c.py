@@ -1,0 +1,88 @@
+"""SAVN's non-adaptive A3C model (``a3c``, SAVN ``BaseModel``) and ``savn`` (the same network plus the
+learned interaction loss and the inner loop).
+
+Feature map -> 1x1 conv 64 + ReLU + dropout; target GloVe -> 64 + ReLU and previous policy -> 10 + ReLU,
+both tiled over the 7x7 grid; concatenation (138) -> 1x1 pointwise conv 64 + ReLU + dropout -> flatten
+(3136) -> LSTMCell(3136, 512) -> actor (6) and critic (1) on h.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.base import (
+    EMBED,
+    GRID,
+    NUM_ACTIONS,
+    ModelConfig,
+    ModelOutput,
+    NavModel,
+    glorot_init,
+    init_heads_and_lstm,
+    lstm_step,
+    tile,
+)
+from mapless.models.learned_loss import LearnedLossMixin
+
+BASE_EMBEDDING = EMBED * GRID * GRID  # 3136
+
+
+class SavnEmbeddingMixin:
+    """SAVN's visual/target/action embedding, shared by a3c, savn, sp, gve and mjolnir_r."""
+
+    def _build_base_embedding(self) -> None:
+        self.conv1 = nn.Conv2d(self.feature_channels, EMBED, 1)
+        self.embed_glove = nn.Linear(self.glove_dim, EMBED)
+        self.embed_action = nn.Linear(NUM_ACTIONS, 10)
+        self.pointwise = nn.Conv2d(EMBED + EMBED + 10, EMBED, 1)
+        self.dropout = nn.Dropout(self.config.dropout)
+
+    def _base_embedding(self, obs: dict[str, Tensor], prev_policy: Tensor) -> Tensor:
+        image = self.dropout(F.relu(self.conv1(obs["features"])))
+        glove = tile(F.relu(self.embed_glove(obs["target_embedding"])), GRID, GRID)
+        action = tile(F.relu(self.embed_action(prev_policy)), GRID, GRID)
+        x = torch.cat([image, glove, action], dim=1)
+        return self.dropout(F.relu(self.pointwise(x))).flatten(1)
+
+    def _finish_init(self, lstm_input: int) -> None:
+        """LSTM and heads, SAVN's init, then the reference's dead ``action_predict_linear``."""
+        self.lstm = nn.LSTMCell(lstm_input, self.hidden_size)
+        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(self.hidden_size, 1)
+        glorot_init(self)
+        if hasattr(self, "conv1"):
+            with torch.no_grad():
+                self.conv1.weight.mul_(math.sqrt(2.0))  # SAVN scales conv1 by the ReLU gain
+        init_heads_and_lstm(self)
+        if self.config.reference_extras:
+            # Defined by every reference model (2 x LSTM input -> 6) and never called.
+            self.action_predict_linear = nn.Linear(2 * lstm_input, NUM_ACTIONS)
+
+
+class A3CModel(SavnEmbeddingMixin, NavModel):
+    description = "SAVN's non-adaptive A3C (ResNet map + GloVe + previous policy -> LSTM)"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_base_embedding()
+        self._finish_init(BASE_EMBEDDING)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        h, c = lstm_step(self._base_embedding(obs, prev_policy), hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+
+
+class SavnModel(LearnedLossMixin, A3CModel):
+    description = "SAVN: a3c + learned interaction loss, inner SGD steps at train and test time"
+    default_inner_lr = 1e-4  # allenai/savn --inner_lr default
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_learned_loss(with_key_linear=True)

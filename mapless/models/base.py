@@ -1,0 +1,214 @@
+"""Shared pieces of every navigation model: config, output type, base class, layers and init.
+
+Models receive the observation dict of docs/observations.md, the recurrent state ``(h, c)`` and the
+previous step's policy (``[B, 6]``), and return :class:`ModelOutput`. Every computation is written
+with plain tensor ops on the module's own parameters (the LSTM step included), so
+``torch.func.functional_call`` with any parameter dict, and ``torch.func.vmap`` over per-episode
+parameters (the meta-learning inner loop, :mod:`mapless.train.meta`), evaluate the same function.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge, load_knowledge
+from mapless.scenes.catalogue import ROOM_TYPES
+
+NUM_ACTIONS = 6
+GRID = 7  # the 7x7 feature map of docs/observations.md (ResNet-18 conv5 size)
+EMBED = 64  # SAVN's per-cell embedding width, reused by every model that follows its layout
+
+
+class ModelOutput(NamedTuple):
+    """``logits [B, 6]`` (softmax gives the policy), ``value [B, 1]``, ``hidden = (h, c)`` each ``[B, H]``."""
+
+    logits: Tensor
+    value: Tensor
+    hidden: tuple[Tensor, Tensor]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Typed construction arguments of every registered model (fields a model does not use are ignored).
+
+    name: registered model name (``mapless models list``).
+    category_set: category set of the context vector / graph nodes (``mjolnir101`` or ``all_types``).
+    feature_channels: channels of ``obs["features"]``; None = category count + 3 (docs/observations.md);
+        512 reproduces the references' ResNet-18 input sizes.
+    hidden_size: LSTM width (512 in every reference).
+    dropout: dropout rate (SAVN's ``--dropout_rate`` 0.25).
+    graph: category graph (``vg`` or ``hierarchical``); None = the model's default.
+    hierarchy_rooms: room types whose target<->parent edges enter the ``hierarchical`` graph
+        (the paper's "no relationships" ablation removes one).
+    inner_lr: inner-loop SGD rate of adaptive models; None = the model's default.
+    interaction_steps: k, the rows of the learned interaction loss (SAVN's 6; the TCN's input channels).
+    max_inner_updates: inner SGD steps per episode (SAVN's ``--gradient_limit`` 4).
+    fusion_channels: output channels of cvmeta's pointwise fusion per category.
+    reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
+        ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
+        parameter counts and state-dict keys match the originals. They never affect outputs.
+    """
+
+    name: str = "cvmeta"
+    category_set: str = "mjolnir101"
+    feature_channels: int | None = None
+    hidden_size: int = 512
+    dropout: float = 0.25
+    graph: str | None = None
+    hierarchy_rooms: tuple[str, ...] = ROOM_TYPES
+    inner_lr: float | None = None
+    interaction_steps: int = 6
+    max_inner_updates: int = 4
+    fusion_channels: int = 32
+    reference_extras: bool = False
+
+
+class NavModel(nn.Module):
+    """Base class: holds the config and the knowledge-derived sizes; subclasses implement ``forward``."""
+
+    #: Inner-loop learning rate when the model adapts at test time (None: not adaptive).
+    default_inner_lr: ClassVar[float | None] = None
+    default_graph: ClassVar[str | None] = None
+    description: ClassVar[str] = ""
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__()
+        self.config = config
+        knowledge = (
+            knowledge
+            if knowledge is not None
+            else load_knowledge(config.category_set, config.hierarchy_rooms)
+        )
+        self.knowledge = knowledge
+        self.num_categories = knowledge.num_categories
+        self.glove_dim = knowledge.glove_dim
+        self.feature_channels = config.feature_channels or self.num_categories + 3
+        self.hidden_size = config.hidden_size
+
+    # -- recurrent state -------------------------------------------------------------------------
+    def initial_state(
+        self, batch_size: int, device: torch.device | str | None = None
+    ) -> tuple[Tensor, Tensor]:
+        zeros = torch.zeros(batch_size, self.hidden_size, device=device)
+        return zeros, zeros.clone()
+
+    # -- meta-learning interface (overridden by adaptive models) ---------------------------------
+    @property
+    def adaptive(self) -> bool:
+        return self.default_inner_lr is not None
+
+    @property
+    def inner_lr(self) -> float:
+        if not self.adaptive:
+            raise TypeError(f"model {self.config.name!r} has no learned interaction loss")
+        return self.config.inner_lr if self.config.inner_lr is not None else float(self.default_inner_lr)
+
+    def learned_loss(self, rows: Tensor) -> Tensor:
+        """``rows [B, k, H + 6]`` -> interaction loss ``[B]`` (adaptive models only)."""
+        raise TypeError(f"model {self.config.name!r} has no learned interaction loss")
+
+    def learned_loss_parameter_names(self) -> list[str]:
+        """φ: the learned-loss parameters (never adapted by the inner step)."""
+        return [n for n, p in self.named_parameters() if p.requires_grad and n.startswith("ll_")]
+
+    def inner_parameter_names(self) -> list[str]:
+        """θ adapted by the inner SGD step: SAVN's rule (every trainable parameter whose name does not
+        contain ``ll``) minus parameters the learned loss cannot reach (critic, dead modules, GVE's
+        graph), which SAVN "adapts" with a None gradient, i.e. leaves unchanged."""
+        unreachable = self._inner_unreachable_prefixes()
+        return [
+            n
+            for n, p in self.named_parameters()
+            if p.requires_grad and "ll" not in n and not n.startswith(unreachable)
+        ]
+
+    def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
+        return ("critic_linear.", "action_predict_linear.")
+
+    def graph_name(self) -> str:
+        return self.config.graph or str(self.default_graph)
+
+
+# -- layers --------------------------------------------------------------------------------------
+def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
+    """``nn.LSTMCell`` math (gate order i, f, g, o) written out so that it works under vmap with
+    per-episode weights and under functional_call."""
+    h, c = hidden
+    gates = F.linear(x, cell.weight_ih, cell.bias_ih) + F.linear(h, cell.weight_hh, cell.bias_hh)
+    i, f, g, o = gates.chunk(4, dim=-1)
+    c_next = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+    h_next = torch.sigmoid(o) * torch.tanh(c_next)
+    return h_next, c_next
+
+
+def tile(vector: Tensor, *spatial: int) -> Tensor:
+    """``[B, D]`` -> ``[B, D, *spatial]`` by broadcasting (SAVN tiles embeddings over the 7x7 map)."""
+    return vector.reshape(*vector.shape, *([1] * len(spatial))).expand(*vector.shape, *spatial)
+
+
+def unit(x: Tensor, dim: int = -1, eps: float = 1e-12) -> Tensor:
+    """L2-normalise along ``dim`` as ``x / sqrt(|x|² + eps²)``: equal to ``F.normalize`` up to rounding
+    for non-zero x, but smooth at x = 0 (zero queries occur at every episode start, and the inner
+    loop's second-order gradients through ``F.normalize``'s norm are NaN there)."""
+    return x * torch.rsqrt(x.pow(2).sum(dim=dim, keepdim=True) + eps * eps)
+
+
+def target_similarity(target_embedding: Tensor, category_glove: Tensor) -> Tensor:
+    """CS column: cosine between the target's GloVe ``[B, D]`` and every category's ``[C, D]`` -> ``[B, C]``."""
+    return unit(target_embedding) @ unit(category_glove).T
+
+
+def context_vector(obs: dict[str, Tensor], category_glove: Tensor) -> Tensor:
+    """The paper's context vector per category, ``[B, C, 5] = [B_inview, x_c, y_c, A_bbox, CS]``.
+
+    The first four columns come from the observation; CS is computed here for *every* category, in
+    view or not (as MJOLNIR fills its fifth column)."""
+    cs = target_similarity(obs["target_embedding"], category_glove)
+    return torch.cat([obs["context"], cs.unsqueeze(-1)], dim=-1)
+
+
+def normalized_adjacency_parameter(adjacency) -> nn.Parameter:
+    """The references store the normalised adjacency itself as a trainable parameter."""
+    from mapless.knowledge import normalize_adjacency
+
+    return nn.Parameter(torch.as_tensor(normalize_adjacency(adjacency)))
+
+
+# -- SAVN initialisation -------------------------------------------------------------------------
+def glorot_init(module: nn.Module) -> None:
+    """SAVN's ``weights_init``: uniform(±sqrt(6 / (fan_in + fan_out))) for every Conv/Linear weight,
+    fan counts including the kernel, biases 0. Applied before the learned-loss modules exist, which
+    (as in SAVN) keep PyTorch's default init."""
+    for m in module.modules():
+        if isinstance(m, nn.Conv1d | nn.Conv2d | nn.Linear):
+            receptive = math.prod(m.weight.shape[2:]) if m.weight.dim() > 2 else 1
+            fan_in, fan_out = m.weight.shape[1] * receptive, m.weight.shape[0] * receptive
+            bound = math.sqrt(6.0 / (fan_in + fan_out))
+            with torch.no_grad():
+                m.weight.uniform_(-bound, bound)
+                if m.bias is not None:
+                    m.bias.zero_()
+
+
+def normalized_column_init(linear: nn.Linear, std: float) -> None:
+    """Rows of Gaussian weights rescaled to norm ``std`` (SAVN's actor 0.01 / critic 1.0), bias 0."""
+    with torch.no_grad():
+        w = torch.randn_like(linear.weight)
+        linear.weight.copy_(w * std / w.pow(2).sum(dim=1, keepdim=True).sqrt())
+        if linear.bias is not None:
+            linear.bias.zero_()
+
+
+def init_heads_and_lstm(model: nn.Module) -> None:
+    """The rest of SAVN's init: actor std 0.01, critic std 1.0, LSTM biases 0 (weights keep PyTorch's)."""
+    normalized_column_init(model.actor_linear, 0.01)
+    normalized_column_init(model.critic_linear, 1.0)
+    with torch.no_grad():
+        model.lstm.bias_ih.zero_()
+        model.lstm.bias_hh.zero_()

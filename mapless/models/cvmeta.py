@@ -1,0 +1,94 @@
+"""The paper's model (Li et al. 2023): context vectors + hierarchical knowledge graph + target word
+embedding, fused by pointwise convolution, LSTM(512), actor/critic, SAVN-style meta-learning.
+
+Per category j (the C graph nodes play the role of SAVN's 49 cells):
+
+* context descriptor: ``ReLU(Conv1d 5 -> 64)`` of ``C_j = [B, x_c, y_c, A_bbox, CS]``, dropout;
+* graph descriptor: MJOLNIR's object GCN on the *hierarchical* graph, node features
+  ``[in-view indicator of all categories || node GloVe]`` (C + 300) through
+  ``ReLU(W0 Â ·)``, ``ReLU(W1 Â ·)`` (C + 300) and ``ReLU(W2 Â ·)`` (64 per node);
+* target descriptor: ``ReLU(Linear 300 -> 64)`` of the target GloVe, tiled over the categories;
+* previous policy: ``ReLU(Linear 6 -> 10)``, tiled (as SAVN).
+
+Their concatenation (202 channels x C) goes through a pointwise ``Conv1d(202 -> fusion_channels)`` +
+ReLU + dropout, is flattened (32 x 101 = 3232 by default, close to SAVN's 3136) and enters
+LSTMCell(., 512). Choices the paper leaves open are argued in docs/model.md.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.base import (
+    EMBED,
+    NUM_ACTIONS,
+    ModelConfig,
+    ModelOutput,
+    NavModel,
+    context_vector,
+    glorot_init,
+    init_heads_and_lstm,
+    lstm_step,
+    normalized_adjacency_parameter,
+    tile,
+)
+from mapless.models.learned_loss import LearnedLossMixin
+
+
+class ContextVectorMetaModel(LearnedLossMixin, NavModel):
+    description = (
+        "the paper's model: context vector + hierarchical GCN + GloVe, pointwise fusion, meta-learning"
+    )
+    default_graph = "hierarchical"
+    default_inner_lr = 1e-3  # the paper: "an inner learning rate of 0.001"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        nodes, width = self.num_categories, self.num_categories + self.glove_dim
+        self.context_embed = nn.Conv1d(5, EMBED, 1)
+        self.A = normalized_adjacency_parameter(self.knowledge.graph(self.graph_name()))
+        self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
+        self.W0 = nn.Linear(width, width, bias=False)
+        self.W1 = nn.Linear(width, width, bias=False)
+        self.W2 = nn.Linear(width, EMBED, bias=False)
+        self.embed_glove = nn.Linear(self.glove_dim, EMBED)
+        self.embed_action = nn.Linear(NUM_ACTIONS, 10)
+        self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
+        self.dropout = nn.Dropout(config.dropout)
+        self.lstm = nn.LSTMCell(config.fusion_channels * nodes, self.hidden_size)
+        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(self.hidden_size, 1)
+        glorot_init(self)
+        init_heads_and_lstm(self)
+        self._build_learned_loss(with_key_linear=False)
+
+    def graph_descriptor(self, in_view: Tensor) -> Tensor:
+        """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
+        batch, nodes = in_view.shape
+        x = torch.cat(
+            [
+                in_view.unsqueeze(1).expand(batch, nodes, nodes),
+                self.all_glove.expand(batch, nodes, self.glove_dim),
+            ],
+            dim=-1,
+        )
+        x = F.relu(self.W0(self.A @ x))
+        x = F.relu(self.W1(self.A @ x))
+        x = F.relu(self.W2(self.A @ x))
+        return x.transpose(1, 2)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        cv = context_vector(obs, self.all_glove)  # [B, C, 5]
+        nodes = cv.shape[1]
+        context = self.dropout(F.relu(self.context_embed(cv.transpose(1, 2))))
+        graph = self.graph_descriptor(obs["context"][..., 0])
+        target = tile(F.relu(self.embed_glove(obs["target_embedding"])), nodes)
+        action = tile(F.relu(self.embed_action(prev_policy)), nodes)
+        fused = F.relu(self.pointwise(torch.cat([context, graph, target, action], dim=1)))
+        h, c = lstm_step(self.dropout(fused).flatten(1), hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))

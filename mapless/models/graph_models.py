@@ -1,0 +1,101 @@
+"""Graph-prior baselines: ``sp`` (Scene Priors, Yang et al. 2018, as in SAVN's ``GCN``) and ``gve``
+(graph-based value estimation, Moghaddam et al.; reconstructed, see docs/model.md).
+
+The graph branch follows SAVN's ``models/gcn.py``: node features ``[class embedding || word
+embedding]`` (512 + 512) through three propagation layers ``X <- ReLU(W (Â X))`` (1024 -> 1024 ->
+1024 -> 1, no bias), flattened and mapped to 512. The original class embedding is Linear(1000 -> 512)
+of ResNet-18's ImageNet class scores, broadcast to every node; the simulator has no ImageNet scores,
+so the per-category in-view indicator (``context[..., 0]``, C values) takes their place.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
+from mapless.models.base import ModelConfig, ModelOutput, NavModel, lstm_step, normalized_adjacency_parameter
+from mapless.models.learned_loss import LearnedLossMixin
+
+GRAPH_EMBEDDING = 512
+
+
+class ScenePriorsGraph(nn.Module):
+    """SAVN's GCN branch over the category set: in-view indicator ``[B, C]`` -> graph embedding ``[B, 512]``."""
+
+    def __init__(self, adjacency, glove, num_categories: int):
+        super().__init__()
+        self.A = normalized_adjacency_parameter(adjacency)  # trainable, as in SAVN
+        self.register_buffer("all_glove", torch.tensor(glove, dtype=torch.float32))
+        self.get_class_embed = nn.Linear(num_categories, 512)
+        self.get_word_embed = nn.Linear(self.all_glove.shape[1], 512)
+        self.W0 = nn.Linear(1024, 1024, bias=False)
+        self.W1 = nn.Linear(1024, 1024, bias=False)
+        self.W2 = nn.Linear(1024, 1, bias=False)
+        self.final_mapping = nn.Linear(num_categories, GRAPH_EMBEDDING)
+
+    def forward(self, in_view: Tensor) -> Tensor:
+        batch, nodes = in_view.shape
+        class_embed = self.get_class_embed(in_view).unsqueeze(1).expand(batch, nodes, 512)
+        word_embed = self.get_word_embed(self.all_glove).expand(batch, nodes, 512)
+        x = torch.cat([class_embed, word_embed], dim=-1)
+        x = F.relu(self.W0(self.A @ x))
+        x = F.relu(self.W1(self.A @ x))
+        x = F.relu(self.W2(self.A @ x))
+        return self.final_mapping(x.squeeze(-1))
+
+
+class ScenePriorsModel(SavnEmbeddingMixin, NavModel):
+    description = "Scene Priors: a3c embedding || GCN graph embedding -> LSTM(3648)"
+    default_graph = "vg"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_base_embedding()
+        self.graph = ScenePriorsGraph(
+            self.knowledge.graph(self.graph_name()), self.knowledge.glove, self.num_categories
+        )
+        self._finish_init(BASE_EMBEDDING + GRAPH_EMBEDDING)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        x = torch.cat([self._base_embedding(obs, prev_policy), self.graph(obs["context"][..., 0])], dim=1)
+        h, c = lstm_step(x, hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+
+
+class GveModel(LearnedLossMixin, SavnEmbeddingMixin, NavModel):
+    """SAVN's actor path unchanged; the Scene-Priors graph embedding g enters only the critic,
+    ``V = Linear(1024 -> 1)([h || g])`` (a linear head on the concatenation is the additive decomposed
+    value W_h h + W_g g + b). Adaptive like SAVN; the inner step cannot reach the graph or critic."""
+
+    description = "GVE: SAVN actor; critic on [h || graph embedding]; SAVN inner loop"
+    default_graph = "vg"
+    default_inner_lr = 1e-4
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_base_embedding()
+        self.gve = ScenePriorsGraph(
+            self.knowledge.graph(self.graph_name()), self.knowledge.glove, self.num_categories
+        )
+        self._finish_init(BASE_EMBEDDING)
+        # Replace the critic by one over [h || g]; SAVN's critic init (normalised columns, std 1.0).
+        from mapless.models.base import normalized_column_init
+
+        self.critic_linear = nn.Linear(self.hidden_size + GRAPH_EMBEDDING, 1)
+        normalized_column_init(self.critic_linear, 1.0)
+        self._build_learned_loss(with_key_linear=True)
+
+    def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
+        return (*super()._inner_unreachable_prefixes(), "gve.")
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        h, c = lstm_step(self._base_embedding(obs, prev_policy), hidden, self.lstm)
+        g = self.gve(obs["context"][..., 0])
+        return ModelOutput(self.actor_linear(h), self.critic_linear(torch.cat([h, g], dim=1)), (h, c))

@@ -1,0 +1,94 @@
+"""MJOLNIR (Qiu et al. 2020): ``mjolnir_o`` (object-only) and ``mjolnir_r`` (object GCN + SAVN embedding).
+
+Context matrix CM ``[C, 5]`` = the context vector (in view, box centre, union-box area, GloVe cosine
+with the target). Object GCN: ``X0 = [in-view indicator repeated per node || node GloVe]``
+(C + 300), ``X1 = ReLU(W0 Â X0)``, ``X2 = ReLU(W1 Â X1)`` (C + 300 each), ``X3 = ReLU(W2 Â X2)`` (5),
+``X4 = ReLU(W3 Â [X3 || CM])`` (1), flatten, ``final_mapping`` C -> 512. ``mjolnir_o`` feeds
+``[CM flattened (5C) || ReLU(Linear 6->10)(previous policy) || GCN (512)]`` (1027 for C = 101) to the
+LSTM; ``mjolnir_r`` feeds ``[SAVN embedding (3136) || GCN (512)]`` (3648). Â is trainable.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
+from mapless.models.base import (
+    NUM_ACTIONS,
+    ModelConfig,
+    ModelOutput,
+    NavModel,
+    context_vector,
+    lstm_step,
+    normalized_adjacency_parameter,
+)
+
+GCN_EMBEDDING = 512
+
+
+class ObjectGcnMixin:
+    def _build_object_gcn(self) -> None:
+        nodes, width = self.num_categories, self.num_categories + self.glove_dim
+        self.A = normalized_adjacency_parameter(self.knowledge.graph(self.graph_name()))
+        self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
+        self.W0 = nn.Linear(width, width, bias=False)
+        self.W1 = nn.Linear(width, width, bias=False)
+        self.W2 = nn.Linear(width, 5, bias=False)
+        self.W3 = nn.Linear(10, 1, bias=False)
+        self.final_mapping = nn.Linear(nodes, GCN_EMBEDDING)
+
+    def _object_gcn(self, cm: Tensor) -> Tensor:
+        batch, nodes, _ = cm.shape
+        in_view = cm[..., 0].unsqueeze(1).expand(batch, nodes, nodes)  # every node sees all detections
+        x = torch.cat([in_view, self.all_glove.expand(batch, nodes, self.all_glove.shape[1])], dim=-1)
+        x = F.relu(self.W0(self.A @ x))
+        x = F.relu(self.W1(self.A @ x))
+        x = F.relu(self.W2(self.A @ x))
+        x = F.relu(self.W3(self.A @ torch.cat([x, cm], dim=-1)))
+        return self.final_mapping(x.squeeze(-1))
+
+
+class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
+    description = "MJOLNIR_O: context matrix + object GCN + previous policy -> LSTM(5C + 522)"
+    default_graph = "vg"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_object_gcn()
+        self.embed_action = nn.Linear(NUM_ACTIONS, 10)
+        self._finish_init(5 * self.num_categories + 10 + GCN_EMBEDDING)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        cm = context_vector(obs, self.all_glove)
+        action = F.relu(self.embed_action(prev_policy))
+        x = torch.cat([cm.flatten(1), action, self._object_gcn(cm)], dim=1)
+        h, c = lstm_step(x, hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+
+
+class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
+    description = "MJOLNIR_R: SAVN embedding || object GCN -> LSTM(3648)"
+    default_graph = "vg"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self._build_base_embedding()
+        self._build_object_gcn()
+        self._finish_init(BASE_EMBEDDING + GCN_EMBEDDING)
+        if config.reference_extras:
+            # MJOLNIR_R builds ResNet-18's avgpool + ImageNet fc, frozen and never used.
+            self.resnet18 = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Linear(512, 1000))
+            self.resnet18.requires_grad_(False)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        cm = context_vector(obs, self.all_glove)
+        x = torch.cat([self._base_embedding(obs, prev_policy), self._object_gcn(cm)], dim=1)
+        h, c = lstm_step(x, hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))

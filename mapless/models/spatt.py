@@ -1,0 +1,84 @@
+"""SpAtt (Mayo, Hazan, Tal, CVPR 2021; ``barmayo/spatial_attention`` ``EOTP``), adaptive like SAVN.
+
+Cells s_i = Conv1d(F -> 64)(features), i over the 49 cells. Three cosine potentials per cell between
+the L2-normalised (then dropped-out) ŝ_i and normalised queries from the target GloVe, the previous
+hidden state and the previous policy (order target, memory, action); mixing weights
+α = Conv1d(512 -> 3)(h_{t-1}) (unconstrained). Attention p = softmax_i(Σ_k α_k θ_k(i)); the attended
+map ReLU(s_i)·p(i) is flattened cell by cell (64 x 49 = 3136, keeping the "where") and is the only LSTM
+input.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.base import (
+    EMBED,
+    GRID,
+    NUM_ACTIONS,
+    ModelConfig,
+    ModelOutput,
+    NavModel,
+    glorot_init,
+    init_heads_and_lstm,
+    lstm_step,
+    unit,
+)
+from mapless.models.learned_loss import LearnedLossMixin
+
+
+class SpattModel(LearnedLossMixin, NavModel):
+    description = "SpAtt: target/memory/action spatial attention over the 7x7 map; SAVN inner loop"
+    default_inner_lr = 0.01  # barmayo/spatial_attention --inner_lr default (SAVN's is 1e-4)
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        hidden = self.hidden_size
+        # 1x1 Conv1d layers (not Linear) keep the original checkpoint's weight shapes (out, in, 1).
+        self.embed_state = nn.Conv1d(self.feature_channels, EMBED, 1)
+        self.embed_glove = nn.Conv1d(self.glove_dim, EMBED, 1)
+        self.embed_action = nn.Conv1d(NUM_ACTIONS, EMBED, 1)
+        self.embed_memory = nn.Conv1d(hidden, EMBED, 1)
+        self.memory_alpha = nn.Conv1d(hidden, 3, 1)
+        self.dropout = nn.Dropout(config.dropout)
+        self.lstm = nn.LSTMCell(EMBED * GRID * GRID, hidden)
+        self.actor_linear = nn.Linear(hidden, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(hidden, 1)
+        glorot_init(self)
+        init_heads_and_lstm(self)
+        self._build_learned_loss(with_key_linear=False)  # EOTP has no ll_key / ll_linear
+
+    @staticmethod
+    def _query(layer: nn.Conv1d, vector: Tensor) -> Tensor:
+        return unit(layer(vector.unsqueeze(-1)).squeeze(-1))
+
+    def attention(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Returns ``(cells [B, 64, 49], attention p [B, 49])``."""
+        h_prev = hidden[0]
+        cells = self.embed_state(obs["features"].flatten(2))
+        keys = self.dropout(unit(cells, dim=1))
+        queries = torch.stack(
+            [
+                self._query(self.embed_glove, obs["target_embedding"]),
+                self._query(self.embed_memory, h_prev),
+                self._query(self.embed_action, prev_policy),
+            ],
+            dim=1,
+        )  # [B, 3, 64]
+        potentials = queries @ keys  # [B, 3, 49] cosine potentials
+        alpha = self.memory_alpha(h_prev.unsqueeze(-1)).squeeze(-1)  # [B, 3]
+        p = torch.softmax((alpha.unsqueeze(-1) * potentials).sum(dim=1), dim=-1)
+        return cells, p
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        cells, p = self.attention(obs, hidden, prev_policy)
+        attended = (F.relu(cells) * p.unsqueeze(1)).flatten(1)
+        h, c = lstm_step(attended, hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))

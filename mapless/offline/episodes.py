@@ -1,0 +1,540 @@
+"""Published evaluation episode pickles (SAVN, MJOLNIR, HOZ): read, map onto the built-in scenes,
+and write ours in the same format.
+
+Reading needs none of the original classes: SAVN pickles hold a
+``datasets.offline_controller_with_small_rotation.ThorAgentState`` start state and torch GloVe
+tensors. The unpickler resolves only a fixed set of harmless globals (containers, numpy arrays,
+torch tensors rebuilt with ``weights_only`` loading); every other global becomes an inert
+placeholder that just records its constructor arguments and state, so an episode file can never
+run code.
+
+Mapping: AI2-THOR object ids changed between versions, so a target id is matched verbatim when
+the built-in scene has it, else to the nearest object of the same type (v1 names translated) by
+horizontal distance. Start poses snap to the nearest built-in pose with the same yaw and horizon.
+Episodes that cannot be mapped are listed with the reason and skipped.
+"""
+
+from __future__ import annotations
+
+import collections
+import copyreg
+import io
+import math
+import pickle
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapless.episodes.episode import Episode
+from mapless.errors import MaplessError
+from mapless.offline.format import (
+    DEFAULT_AGENT_Y,
+    OfflineFormatError,
+    check_format,
+    object_type_of_id,
+    parse_pose_key,
+    scene_folder_name,
+)
+from mapless.sim.scene_data import SceneData, pose_key
+
+#: v1/SAVN type names -> AI2-THOR 5 types whose instances stand for them when mapping targets.
+TYPE_ALIASES: dict[str, tuple[str, ...]] = {
+    "CoffeeMaker": ("CoffeeMachine",),
+    "Lamp": ("DeskLamp", "FloorLamp"),
+    "TableTop": ("DiningTable", "CoffeeTable"),
+    "NightStand": ("SideTable",),
+    "Glassbottle": ("Bottle",),
+    "ToiletPaperRoll": ("ToiletPaper",),
+}
+MJOLNIR_ROOM_NAMES = {
+    "kitchen": "Kitchen",
+    "living_room": "Living_Room",
+    "bedroom": "Bedroom",
+    "bathroom": "Bathroom",
+}
+THOR_STATE_MODULE = "datasets.offline_controller_with_small_rotation"
+THOR_STATE_CLASS = "ThorAgentState"
+DEFAULT_MAX_TARGET_DISTANCE = 0.5  # m, horizontal; 96 % of HOZ targets lie within 0.3 m
+DEFAULT_MAX_START_DISTANCE = 0.36  # m: one diagonal grid step
+
+
+# ---------------------------------------------------------------------------------------- reading
+
+
+class Placeholder:
+    """Stand-in for a class that is not importable here (``ThorAgentState``...)."""
+
+    pickled_module = ""
+    pickled_name = ""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        self.args = args
+        self.__dict__.update(kwargs)
+
+    def __setstate__(self, state: Any) -> None:
+        if isinstance(state, tuple) and len(state) == 2:  # (dict, slots) of __slots__ classes
+            for part in state:
+                if isinstance(part, dict):
+                    self.__dict__.update(part)
+        elif isinstance(state, dict):
+            self.__dict__.update(state)
+        else:
+            self.state = state
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Placeholder:
+        # A REDUCE through a placeholder "function" (getattr(obj, name)(...)) stays inert too.
+        return Placeholder(*args, **kwargs)
+
+    def __repr__(self) -> str:
+        fields = {k: v for k, v in self.__dict__.items() if k != "args"}
+        return f"<{self.pickled_module}.{self.pickled_name} {fields}>"
+
+
+def _safe_load_from_bytes(data: bytes) -> Any:
+    import torch
+
+    return torch.load(io.BytesIO(data), weights_only=True)
+
+
+def _safe_globals() -> dict[tuple[str, str], Any]:
+    import builtins
+
+    from numpy._core import multiarray
+
+    allowed: dict[tuple[str, str], Any] = {}
+    for name in (
+        "list",
+        "dict",
+        "set",
+        "frozenset",
+        "tuple",
+        "int",
+        "float",
+        "complex",
+        "str",
+        "bytes",
+        "bytearray",
+        "bool",
+        "slice",
+        "range",
+        "object",
+    ):
+        # "__builtin__" is how Python 2 pickles (protocol <= 2) name the same module.
+        allowed[("builtins", name)] = allowed[("__builtin__", name)] = getattr(builtins, name)
+    allowed[("copyreg", "_reconstructor")] = copyreg._reconstructor
+    allowed[("copy_reg", "_reconstructor")] = copyreg._reconstructor
+    allowed[("_codecs", "encode")] = __import__("codecs").encode
+    allowed[("collections", "OrderedDict")] = collections.OrderedDict
+    for module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed[(module, "_reconstruct")] = multiarray._reconstruct
+        allowed[(module, "scalar")] = multiarray.scalar
+    allowed[("numpy", "dtype")] = np.dtype
+    allowed[("numpy", "ndarray")] = np.ndarray
+    try:
+        import torch._utils
+    except ImportError:  # without torch, tensors stay placeholders
+        return allowed
+    allowed[("torch._utils", "_rebuild_tensor_v2")] = torch._utils._rebuild_tensor_v2
+    allowed[("torch._utils", "_rebuild_tensor")] = torch._utils._rebuild_tensor
+    allowed[("torch.storage", "_load_from_bytes")] = _safe_load_from_bytes
+    return allowed
+
+
+class EpisodeUnpickler(pickle.Unpickler):
+    """Unpickler that maps every global outside a harmless allow-list to a :class:`Placeholder`."""
+
+    _allowed: dict[tuple[str, str], Any] | None = None
+
+    def __init__(self, file: Any):
+        super().__init__(file)
+        if EpisodeUnpickler._allowed is None:
+            EpisodeUnpickler._allowed = _safe_globals()
+        self._placeholders: dict[tuple[str, str], type] = {}
+
+    def find_class(self, module: str, name: str) -> Any:
+        found = self._allowed.get((module, name))
+        if found is not None:
+            return found
+        key = (module, name)
+        if key not in self._placeholders:
+            self._placeholders[key] = type(
+                name, (Placeholder,), {"pickled_module": module, "pickled_name": name}
+            )
+        return self._placeholders[key]
+
+
+@dataclass(frozen=True)
+class RawEpisode:
+    """One episode of a published pickle, as stored (scene and ids in the file's spelling)."""
+
+    index: int
+    scene: str
+    target_type: str
+    target_ids: tuple[str, ...]
+    start: tuple[float, float, int, int]  # x, z, yaw, horizon
+    room: str | None = None
+    embedding: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+
+def _start_of(state: Any) -> tuple[float, float, int, int]:
+    if isinstance(state, str):
+        return parse_pose_key(state)
+    values = state if isinstance(state, dict) else getattr(state, "__dict__", {})
+    try:
+        return (
+            round(float(values["x"]), 2),
+            round(float(values["z"]), 2),
+            round(float(values["rotation"])),
+            round(float(values["horizon"])),
+        )
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"start state {state!r} has no x, z, rotation, horizon") from None
+
+
+def _as_array(value: Any) -> np.ndarray | None:
+    if value is None:
+        return None
+    if hasattr(value, "detach"):  # torch tensor
+        return value.detach().cpu().numpy()
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
+def read_episode_file(path: str | Path) -> tuple[list[RawEpisode], list[tuple[int, str]]]:
+    """Episodes of a SAVN/MJOLNIR/HOZ pickle, and ``(index, reason)`` of entries that are malformed."""
+    path = Path(path)
+    if not path.is_file():
+        raise OfflineFormatError(path, "no such episode file")
+    try:
+        with path.open("rb") as f:
+            data = EpisodeUnpickler(f).load()
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        ImportError,
+        IndexError,
+        KeyError,
+        RuntimeError,
+    ) as error:
+        raise OfflineFormatError(
+            path, f"not a readable episode pickle ({type(error).__name__}: {error})"
+        ) from None
+    if not isinstance(data, list | tuple):
+        raise OfflineFormatError(path, f"expected a list of episode dicts, found {type(data).__name__}")
+    episodes: list[RawEpisode] = []
+    bad: list[tuple[int, str]] = []
+    for i, entry in enumerate(data):
+        if not isinstance(entry, dict):
+            bad.append((i, f"entry is a {type(entry).__name__}, not a dict"))
+            continue
+        missing = [k for k in ("scene", "goal_object_type", "task_data", "state") if k not in entry]
+        if missing:
+            bad.append((i, f"entry has no {', '.join(missing)}"))
+            continue
+        try:
+            start = _start_of(entry["state"])
+        except ValueError as error:
+            bad.append((i, str(error)))
+            continue
+        task = entry["task_data"]
+        ids = (task,) if isinstance(task, str) else tuple(str(t) for t in task or ())
+        episodes.append(
+            RawEpisode(
+                index=i,
+                scene=str(entry["scene"]),
+                target_type=str(entry["goal_object_type"]),
+                target_ids=ids,
+                start=start,
+                room=entry.get("room"),
+                embedding=_as_array(entry.get("glove_embedding")),
+            )
+        )
+    return episodes, bad
+
+
+# ---------------------------------------------------------------------------------------- mapping
+
+
+@dataclass
+class MappingReport:
+    """Mapped episodes (``episode_id`` = ``import/<room>/<index in the file>``) and the skipped
+    ones as ``(index in the file, reason)``."""
+
+    episodes: list[Episode]
+    skipped: list[tuple[int, str]]
+    total: int
+    exact_ids: int = 0
+    nearest_ids: int = 0
+    snapped_starts: int = 0
+
+    @property
+    def mapped(self) -> int:
+        return len(self.episodes)
+
+    def summary(self, max_reasons: int = 10) -> str:
+        lines = [
+            f"{self.mapped} of {self.total} episodes mapped, {len(self.skipped)} skipped",
+            f"target ids: {self.exact_ids} matched verbatim, {self.nearest_ids} by type + nearest position",
+            f"start poses: {self.snapped_starts} snapped to the nearest built-in pose",
+        ]
+        reasons = collections.Counter(_reason_kind(r) for _, r in self.skipped)
+        for reason, count in reasons.most_common(max_reasons):
+            example = next(f"#{i}: {r}" for i, r in self.skipped if _reason_kind(r) == reason)
+            lines.append(f"  skipped {count}: {reason} (e.g. {example})")
+        return "\n".join(lines)
+
+
+def _reason_kind(reason: str) -> str:
+    return reason.split(":", 1)[0]
+
+
+def _id_type_and_position(object_id: str) -> tuple[str, tuple[float, float, float]]:
+    """THOR ids are ``Type|x|y|z`` (+ ``|ChildType`` for sub-objects such as ``SinkBasin``)."""
+    parts = object_id.split("|")
+    if len(parts) < 4:
+        raise ValueError(object_id)
+    return object_type_of_id(object_id), (float(parts[1]), float(parts[2]), float(parts[3]))
+
+
+def _v5_types(object_type: str) -> tuple[str, ...]:
+    return (object_type, *TYPE_ALIASES.get(object_type, ()))
+
+
+def map_episodes(
+    episodes: Iterable[RawEpisode],
+    *,
+    scene_data: Callable[[str], SceneData] | None = None,
+    max_target_distance: float = DEFAULT_MAX_TARGET_DISTANCE,
+    max_start_distance: float = DEFAULT_MAX_START_DISTANCE,
+    rotation_step: int = 45,
+) -> MappingReport:
+    """Map published episodes onto the built-in scenes.
+
+    ``scene_data(name)`` supplies the built-in SceneData, whose poses the starts snap to; without
+    it starts snap to the scene's reachable grid (``load_scene(name).reachable``), yaw and horizon
+    unchanged.
+    """
+    from mapless.scenes import load_scene
+    from mapless.scenes.catalogue import canonical_scene
+
+    report = MappingReport(episodes=[], skipped=[], total=0)
+    for episode in episodes:
+        report.total += 1
+        try:
+            name = canonical_scene(episode.scene)
+        except MaplessError:
+            report.skipped.append((episode.index, f"unknown scene: {episode.scene!r}"))
+            continue
+        scene = load_scene(name)
+        mapped, problem, exact = _map_targets(scene, episode.target_ids, max_target_distance)
+        if problem:
+            report.skipped.append((episode.index, problem))
+            continue
+        x, z, yaw, horizon = episode.start
+        if yaw % rotation_step:
+            report.skipped.append((episode.index, f"start yaw not on the {rotation_step} degree grid: {yaw}"))
+            continue
+        start, snapped = _snap_start(name, scene, x, z, yaw % 360, horizon, scene_data, max_start_distance)
+        if start is None:
+            report.skipped.append(
+                (episode.index, f"start pose not reachable: {pose_key(x, z, yaw, horizon)} in {name}")
+            )
+            continue
+        target_types = [scene.object(i).type for i in mapped]
+        goal = next((t for t in _v5_types(episode.target_type) if t in target_types), target_types[0])
+        optimal = -1
+        if scene_data is not None:
+            sd = scene_data(name)
+            known = [sd.instance_ids.index(i) for i in mapped if i in sd.instance_ids]
+            distance = int(
+                sd.distances_to(sd.goal_mask_for_instances(np.array(known, dtype=np.int64)))[
+                    sd.pose_index[pose_key(*start)]
+                ]
+            )
+            if distance < 0:
+                report.skipped.append(
+                    (
+                        episode.index,
+                        f"target not reachable from the start: {mapped} from {pose_key(*start)} in {name}",
+                    )
+                )
+                continue
+            optimal = distance + 1
+        report.exact_ids += exact
+        report.nearest_ids += len(episode.target_ids) - exact
+        report.snapped_starts += snapped
+        report.episodes.append(
+            Episode(
+                scene=name,
+                target=goal,
+                start=start,
+                optimal_length=optimal,
+                target_ids=tuple(mapped),
+                episode_id=f"import/{scene.room_type}/{episode.index:04d}",
+            )
+        )
+    return report
+
+
+def _map_targets(scene: Any, ids: tuple[str, ...], max_distance: float) -> tuple[list[str], str | None, int]:
+    if not ids:
+        return [], "no target: task_data is empty", 0
+    mapped: list[str] = []
+    exact = 0
+    for object_id in ids:
+        if object_id in scene.object_index:
+            exact += 1
+            mapped.append(object_id)
+            continue
+        try:
+            object_type, (x, _, z) = _id_type_and_position(object_id)
+        except ValueError:
+            return [], f"target id without a position: {object_id!r}", 0
+        candidates = [
+            o for t in _v5_types(object_type) for o in (scene.objects[i] for i in scene.instances_of(t))
+        ]
+        if not candidates:
+            return [], f"no object of that type in the scene: {object_type} ({object_id!r}, {scene.name})", 0
+        best = min(candidates, key=lambda o: math.hypot(o.center[0] - x, o.center[2] - z))
+        distance = math.hypot(best.center[0] - x, best.center[2] - z)
+        if distance > max_distance:
+            return (
+                [],
+                (
+                    f"no object of that type nearby: nearest {best.id!r} is {distance:.2f} m from "
+                    f"{object_id!r} ({scene.name})"
+                ),
+                0,
+            )
+        mapped.append(best.id)
+    return list(dict.fromkeys(mapped)), None, exact
+
+
+def _snap_start(
+    name: str,
+    scene: Any,
+    x: float,
+    z: float,
+    yaw: int,
+    horizon: int,
+    scene_data: Callable[[str], SceneData] | None,
+    max_distance: float,
+) -> tuple[tuple[float, float, int, int] | None, bool]:
+    key = pose_key(x, z, yaw, horizon)
+    if scene_data is not None:
+        sd = scene_data(name)
+        if key in sd.pose_index:
+            return (x, z, yaw, horizon), False
+        same = np.flatnonzero((sd.yaw == yaw) & (sd.horizon == horizon))
+        if not len(same):
+            return None, False
+        d = np.hypot(sd.x[same] - x, sd.z[same] - z)
+        best = int(same[np.argmin(d)])
+        if d.min() > max_distance:
+            return None, False
+        return (round(float(sd.x[best]), 2), round(float(sd.z[best]), 2), yaw, horizon), True
+    grid = scene.reachable
+    if not len(grid):
+        return None, False
+    d = np.hypot(grid[:, 0] - x, grid[:, 1] - z)
+    best = int(np.argmin(d))
+    if d[best] > max_distance:
+        return None, False
+    snapped = (round(float(grid[best, 0]), 2), round(float(grid[best, 1]), 2), yaw, horizon)
+    return snapped, pose_key(*snapped) != key
+
+
+def import_episode_file(path: str | Path, **kwargs: Any) -> MappingReport:
+    """:func:`read_episode_file` then :func:`map_episodes`; malformed entries count as skipped."""
+    episodes, bad = read_episode_file(path)
+    report = map_episodes(episodes, **kwargs)
+    report.skipped = sorted(bad + report.skipped)
+    report.total += len(bad)
+    return report
+
+
+# ---------------------------------------------------------------------------------------- writing
+
+
+class _ThorAgentState:
+    """Written under the originals' class path, so their ``pickle.load`` rebuilds a real
+    ``ThorAgentState`` (plain attributes, no custom state handling)."""
+
+    def __init__(self, x: float, y: float, z: float, rotation: int, horizon: int):
+        self.x, self.y, self.z, self.rotation, self.horizon = x, y, z, rotation, horizon
+
+    def __reduce_ex__(self, protocol: int) -> tuple:
+        return copyreg.__newobj__, (type(self),), dict(self.__dict__)
+
+
+class _EpisodePickler(pickle._Pickler):
+    """Pure-Python pickler that names :class:`_ThorAgentState` by the originals' class path (the
+    class is not importable there under our name, and we cannot import theirs)."""
+
+    def save_global(self, obj: Any, name: str | None = None) -> None:
+        if obj is _ThorAgentState:
+            self.write(pickle.GLOBAL + f"{THOR_STATE_MODULE}\n{THOR_STATE_CLASS}\n".encode())
+            self.memoize(obj)
+            return
+        super().save_global(obj, name)
+
+
+def write_episode_file(
+    episodes: Iterable[Episode],
+    path: str | Path,
+    format: str = "savn",
+    *,
+    embeddings: Mapping[str, np.ndarray],
+    agent_y: float = DEFAULT_AGENT_Y,
+) -> int:
+    """Write ``episodes`` as a SAVN or MJOLNIR evaluation pickle; returns the number written.
+
+    Each entry has ``scene`` (SAVN spelling: ``FloorPlan1_physics`` for kitchens and living rooms),
+    ``goal_object_type``, ``task_data`` (the episode's ``target_ids``, or else every instance of the
+    target type in the built-in scene, as SAVN's own sampler does), ``state`` (a
+    ``ThorAgentState``) and ``glove_embedding`` (a torch FloatTensor for SAVN, a float32 array for
+    MJOLNIR, which also gets ``room``). ``embeddings`` maps each target type to its vector.
+    """
+    from mapless.scenes import load_scene, room_type_of
+
+    check_format(format)
+    entries = []
+    for episode in episodes:
+        if episode.target not in embeddings:
+            raise MaplessError(
+                f"no embedding for target type {episode.target!r} (episode {episode.episode_id or '?'} "
+                f"of {episode.scene}); the embedding table has {len(embeddings)} types"
+            )
+        vector = np.asarray(embeddings[episode.target], dtype=np.float32).reshape(-1)
+        task = list(episode.target_ids)
+        if not task:
+            scene = load_scene(episode.scene)
+            task = [scene.objects[i].id for i in scene.instances_of(episode.target)]
+        x, z, yaw, horizon = episode.start
+        entry: dict[str, Any] = {
+            "scene": scene_folder_name(episode.scene, format),
+            "goal_object_type": episode.target,
+            "task_data": task,
+            "state": _ThorAgentState(round(float(x), 2), agent_y, round(float(z), 2), int(yaw), int(horizon)),
+        }
+        if format == "savn":
+            import torch
+
+            entry["glove_embedding"] = torch.from_numpy(vector.copy())
+        else:
+            entry["glove_embedding"] = vector
+            entry["room"] = MJOLNIR_ROOM_NAMES.get(room_type_of(episode.scene), "")
+        entries.append(entry)
+    buffer = io.BytesIO()
+    # Protocol 2: readable by the Python 3.6 / PyTorch 0.4 environment of the originals.
+    _EpisodePickler(buffer, protocol=2).dump(entries)
+    Path(path).write_bytes(buffer.getvalue())
+    return len(entries)

@@ -1,0 +1,277 @@
+"""The batched trainer (the default): B episodes in lockstep, one batched forward per step, one
+optimizer step per batch.
+
+Per update::
+
+    episodes = B reference-sampled training episodes (room-type cycle, random scene/start/target)
+    trajectory = run_batch(...)            # lockstep to the end of the longest episode (<= 30 steps)
+    loss = mean_b A3C(episode b)           # per-episode losses exactly as the reference computes them
+    backward (through the batched inner loop for adaptive models), all-reduce over ranks, clip, step
+
+The same code runs on every rank under torchrun (:mod:`mapless.train.distributed`).
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mapless.config import to_dict
+from mapless.sim.vector import BatchedNavEnv
+from mapless.train import checkpoint as ckpt
+from mapless.train import distributed as dist
+from mapless.train.common import (
+    BuiltinLibrary,
+    LibraryFactory,
+    clip_gradients,
+    fill_missing_gradients,
+    new_model,
+    reward_config,
+    seed_for,
+    target_fields,
+    trainable,
+    training_sampler,
+)
+from mapless.train.config import TrainConfig
+from mapless.train.monitor import RunMonitor
+from mapless.train.optim import SharedAdam
+from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_batch
+
+#: Rows of the per-episode statistics exchanged between ranks.
+_EPISODE_ROWS = ("success", "spl", "length", "reward")
+
+
+class GracefulStop:
+    """First SIGINT: finish the current update, checkpoint and stop. Second SIGINT: abort at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __enter__(self) -> GracefulStop:
+        try:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        except ValueError:  # not the main thread (e.g. a test harness): no handler, no graceful stop
+            self._previous = None
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\nmapless: stopping after this update (Ctrl-C again to abort)", flush=True)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+class BatchedTrainer:
+    def __init__(
+        self,
+        config: TrainConfig,
+        run_dir: Path | None,
+        library_factory: LibraryFactory | None = None,
+        ctx: dist.DistContext | None = None,
+    ):
+        """``run_dir`` receives logs and checkpoints (rank 0 only); ``library_factory`` defaults to the
+        cached built-in scenes (tests pass small hand-made ones)."""
+        self.config = config
+        self.ctx = ctx or dist.DistContext()
+        self.run_dir = Path(run_dir) if run_dir is not None and self.ctx.is_main else None
+        self.library_factory = library_factory or BuiltinLibrary(config)
+        if config.device.startswith("cuda"):
+            self.device = (
+                torch.device("cuda", self.ctx.local_rank)
+                if config.device == "cuda"
+                else torch.device(config.device)
+            )
+        else:
+            self.device = torch.device("cpu")
+        self.counters = {"episodes": 0, "frames": 0, "updates": 0}
+
+    # -- setup -----------------------------------------------------------------------------------
+    def _setup(self, resume: dict | None) -> None:
+        cfg, rank = self.config, self.ctx.rank
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        torch.manual_seed(seed_for(cfg, rank))
+        self.rng = np.random.default_rng(seed_for(cfg, 10_000 + rank))
+        self.model = new_model(cfg, self.device)
+        self.params = trainable(self.model)
+        self.actor = make_actor(self.model, first_order=cfg.meta.first_order)
+        self.optimizer = SharedAdam.from_config(self.params, cfg.optim)
+        self.obs_keys = observation_keys(self.model)
+        library = self.library_factory()
+        self.sampler = training_sampler(cfg, library, seed_for(cfg, 20_000 + rank))
+        self.env = BatchedNavEnv(
+            library,
+            cfg.env.scene_list(),
+            cfg.batch_size,
+            targets=target_fields(cfg),
+            rewards=reward_config(cfg),
+            mode="train",
+            max_steps=cfg.env.max_steps,
+            category_set=cfg.model.category_set,
+        )
+        if resume is not None:
+            self._restore(resume)
+        else:
+            dist.broadcast_parameters(self.params, self.ctx)
+
+    def _rng_state(self) -> dict:
+        state = {
+            "torch": torch.get_rng_state(),
+            "numpy": self.rng.bit_generator.state,
+            # The sampler's position in its room-type cycle (its only mutable state).
+            "sampler_next_room": int(self.sampler._next_room),
+        }
+        if self.device.type == "cuda":
+            state["cuda"] = torch.cuda.get_rng_state(self.device).cpu()
+        return state
+
+    def _restore(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.counters = {k: int(v) for k, v in state["counters"].items() if k in self.counters}
+        rngs = state.get("rng", [])
+        if self.ctx.rank < len(rngs):
+            rng = rngs[self.ctx.rank]
+            torch.set_rng_state(rng["torch"])
+            self.rng.bit_generator.state = rng["numpy"]
+            self.sampler._next_room = int(rng["sampler_next_room"])
+            if "cuda" in rng and self.device.type == "cuda":
+                torch.cuda.set_rng_state(rng["cuda"], self.device)
+        else:
+            # More ranks than when the checkpoint was written: fresh, distinct streams for the new ones.
+            stream = 30_000 + self.ctx.rank + 97 * self.counters["episodes"]
+            torch.manual_seed(seed_for(self.config, stream))
+            self.rng = np.random.default_rng(seed_for(self.config, stream + 1))
+
+    # -- checkpoints -----------------------------------------------------------------------------
+    def _checkpoint(self, final: bool = False) -> None:
+        rngs = dist.gather_objects(self._rng_state(), self.ctx)  # collective: every rank calls it
+        if self.run_dir is None:
+            return
+        ckpt.save_checkpoint(
+            self.run_dir,
+            {
+                "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+                "optimizer": self.optimizer.state_dict(),
+                "rng": rngs,
+                "counters": {**self.counters, "world_size": self.ctx.world_size},
+                "config": to_dict(self.config),
+            },
+        )
+        ckpt.save_snapshot(self.run_dir, self.model, self.config, self.counters)
+        if final:
+            ckpt.save_final(self.run_dir, self.model, self.config, self.counters)
+
+    # -- loop ------------------------------------------------------------------------------------
+    def _budget_reached(self) -> bool:
+        cfg = self.config
+        return (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes) or (
+            cfg.frames > 0 and self.counters["frames"] >= cfg.frames
+        )
+
+    def update(self) -> dict[str, Any]:
+        """One batch of episodes and one optimizer step; returns this rank's statistics."""
+        cfg = self.config
+        episodes = [self.sampler.sample(self.rng) for _ in range(cfg.batch_size)]
+        noise = self.rng.random((cfg.batch_size, cfg.env.max_steps))
+        self.optimizer.zero_grad(set_to_none=True)
+        trajectory = run_batch(self.actor, self.env, episodes, noise, self.obs_keys, self.device)
+        losses = accumulate_gradients(self.actor, trajectory, cfg.loss)
+        fill_missing_gradients(self.model)
+        dist.all_reduce_gradients(self.params, self.ctx)
+        clip_gradients(self.model, cfg)
+        self.optimizer.step()
+        return {"trajectory": trajectory, "losses": losses}
+
+    def run(self, resume: dict | None = None) -> dict[str, float]:
+        """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
+        cfg = self.config
+        self._setup(resume)
+        monitor = RunMonitor(
+            self.run_dir,
+            cfg.log_every,
+            cfg.episodes,
+            cfg.frames,
+            self.counters["episodes"],
+            self.counters["frames"],
+            progress=cfg.progress,
+            description=f"{cfg.model.name} batched",
+        )
+        start, start_frames = time.perf_counter(), self.counters["frames"]
+        first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)
+        stopped = False
+        try:
+            with GracefulStop() as stop:
+                while not self._budget_reached():
+                    result = self.update()
+                    stopped = self._account(result, monitor, stop.requested)
+                    if first is None:
+                        first = (time.perf_counter(), self.counters["frames"])
+                    if stopped:
+                        break
+            loop_end = time.perf_counter()
+            self._checkpoint(final=not stopped)
+        finally:
+            monitor.close()
+        end = loop_end
+        steady = (self.counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
+        return {
+            **{k: float(v) for k, v in self.counters.items()},
+            "seconds": time.perf_counter() - start,
+            "frames_per_s": (self.counters["frames"] - start_frames) / max(end - start, 1e-9),
+            "steady_frames_per_s": steady,
+            "running_success": monitor.running_success,
+            "stopped_early": float(stopped),
+        }
+
+    def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
+        """Merge statistics over ranks, advance counters, log and checkpoint. Returns True to stop."""
+        traj, losses = result["trajectory"], result["losses"]
+        rows = torch.tensor(
+            np.stack([traj.success, traj.spl(), traj.length, traj.total_reward()]), dtype=torch.float64
+        )
+        rows = dist.all_gather_rows(rows, self.ctx)
+        n = traj.logits.shape[1]
+        totals = torch.tensor(
+            [
+                float(losses.total.detach().sum()),
+                float(losses.policy.detach().sum()),
+                float(losses.value.detach().sum()),
+                float(losses.entropy.detach().sum()),
+                float(n),
+                float(traj.frames),
+                float(stop_requested),
+            ],
+            dtype=torch.float64,
+        )
+        totals = dist.all_reduce_sum(totals, self.ctx)
+        episodes, frames = int(totals[4]), int(totals[5])
+        before = self.counters["episodes"]
+        self.counters["episodes"] += episodes
+        self.counters["frames"] += frames
+        self.counters["updates"] += 1
+        monitor.add_episodes(*(rows[i].numpy() for i in range(len(_EPISODE_ROWS))))
+        monitor.add_losses(
+            float(totals[0] / episodes),
+            float(totals[1] / episodes),
+            float(totals[2] / episodes),
+            float(totals[3] / max(frames, 1)),
+            count=episodes,
+        )
+        monitor.advance(self.counters["episodes"], self.counters["frames"])
+        if totals[6] > 0:
+            return True
+        every = self.config.checkpoint_every
+        if self.counters["episodes"] // every > before // every and not self._budget_reached():
+            self._checkpoint()
+        return False

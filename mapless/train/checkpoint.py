@@ -1,0 +1,149 @@
+"""Run folders, atomic checkpoints and loading trained models.
+
+A run folder holds::
+
+    config.yaml                 the resolved TrainConfig (every default written out)
+    events.out.tfevents.*       TensorBoard logs
+    metrics.jsonl               the same scalars, one JSON line per log interval
+    checkpoint.pt               the latest resumable state (model, optimizer, RNG states, counters, config)
+    checkpoints/model_<episodes>.pt   a model snapshot per checkpoint (what evaluation selects from)
+    final_model.pt              the model at the end of the budget
+
+Every file is written to a temporary name in the same folder and renamed over the target, so a
+killed trainer leaves either the previous or the new file, never a torn one. Files contain only
+tensors, numbers, strings, lists and dicts and are read with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mapless.config import from_dict, to_dict
+from mapless.errors import MaplessError
+from mapless.models import NavModel, build_model
+from mapless.train.config import TrainConfig
+
+CONFIG_FILE = "config.yaml"
+CHECKPOINT_FILE = "checkpoint.pt"
+FINAL_MODEL_FILE = "final_model.pt"
+SNAPSHOT_DIR = "checkpoints"
+FORMAT_VERSION = 1
+_SNAPSHOT = re.compile(r"model_(\d+)\.pt$")
+
+
+class CheckpointError(MaplessError):
+    pass
+
+
+def atomic_save(payload: Any, path: str | Path) -> None:
+    """``torch.save`` to a temporary file next to ``path``, fsync, then rename over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # a torn or foreign file: say which one
+        raise CheckpointError(f"cannot read checkpoint {path}: {error}") from error
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT_VERSION:
+        raise CheckpointError(f"{path} is not a mapless checkpoint (format {FORMAT_VERSION})")
+    return payload
+
+
+def model_payload(model: NavModel, config: TrainConfig, counters: dict[str, int]) -> dict:
+    """What evaluation needs: weights, the config that builds the model, and how far training got."""
+    return {
+        "format": FORMAT_VERSION,
+        "kind": "model",
+        "config": to_dict(config),
+        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "counters": dict(counters),
+    }
+
+
+def save_snapshot(run_dir: Path, model: NavModel, config: TrainConfig, counters: dict[str, int]) -> Path:
+    path = Path(run_dir) / SNAPSHOT_DIR / f"model_{counters['episodes']:010d}.pt"
+    atomic_save(model_payload(model, config, counters), path)
+    return path
+
+
+def save_final(run_dir: Path, model: NavModel, config: TrainConfig, counters: dict[str, int]) -> Path:
+    path = Path(run_dir) / FINAL_MODEL_FILE
+    atomic_save(model_payload(model, config, counters), path)
+    return path
+
+
+def save_checkpoint(run_dir: Path, state: dict) -> Path:
+    """``state``: model, optimizer, rng, counters, config (see the trainers); adds the format tag."""
+    path = Path(run_dir) / CHECKPOINT_FILE
+    atomic_save({"format": FORMAT_VERSION, "kind": "checkpoint", **state}, path)
+    return path
+
+
+def config_of(payload: dict) -> TrainConfig:
+    return from_dict(TrainConfig, payload["config"])
+
+
+def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
+    """``(episodes, path)`` of every model snapshot of a run, oldest first."""
+    folder = Path(run_dir) / SNAPSHOT_DIR
+    found = []
+    for path in folder.glob("model_*.pt") if folder.is_dir() else []:
+        match = _SNAPSHOT.search(path.name)
+        if match:
+            found.append((int(match.group(1)), path))
+    return sorted(found)
+
+
+def resolve_model_file(path: str | Path) -> Path:
+    """A model file, or a run folder (-> its final model, else its latest snapshot or checkpoint)."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise CheckpointError(f"{path} is neither a model file nor a run folder")
+    for candidate in (
+        path / FINAL_MODEL_FILE,
+        *(p for _, p in reversed(snapshots(path))),
+        path / CHECKPOINT_FILE,
+    ):
+        if candidate.is_file():
+            return candidate
+    raise CheckpointError(
+        f"run folder {path} holds no model yet ({FINAL_MODEL_FILE}, {SNAPSHOT_DIR}/ or {CHECKPOINT_FILE})"
+    )
+
+
+def load_model(
+    path: str | Path, device: str | torch.device = "cpu"
+) -> tuple[NavModel, TrainConfig, dict[str, int]]:
+    """Build the model of a run folder, model snapshot or resumable checkpoint and load its weights.
+
+    Returns ``(model in eval mode on device, the run's TrainConfig, counters)``; ``config.model`` is the
+    :class:`~mapless.models.ModelConfig` (inner learning rate and steps for adaptive models included).
+    """
+    payload = load_file(resolve_model_file(path), map_location=device)
+    config = config_of(payload)
+    model = build_model(config.model)
+    model.load_state_dict(payload["model"])
+    return model.to(device).eval(), config, dict(payload.get("counters", {}))

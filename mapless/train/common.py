@@ -1,0 +1,79 @@
+"""Pieces both trainers build the same way: scenes, targets, sampler, model, gradient clipping."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapless.episodes.sampler import TrainingSampler
+from mapless.models import NavModel, build_model
+from mapless.sim.library import SceneLibrary
+from mapless.sim.task import RewardConfig, TargetFields
+from mapless.train.config import TrainConfig
+
+#: Builds the scene library in the process that needs it (async workers build their own).
+LibraryFactory = Callable[[], SceneLibrary]
+
+
+@dataclass(frozen=True)
+class BuiltinLibrary:
+    """Picklable factory of the cached built-in scenes (what ``mapless train`` uses)."""
+
+    config: TrainConfig
+
+    def __call__(self) -> SceneLibrary:
+        cache = Path(self.config.env.cache_dir) if self.config.env.cache_dir else None
+        return SceneLibrary.builtin(self.config.env.sim, cache)
+
+
+def target_fields(config: TrainConfig) -> TargetFields:
+    """GloVe target embeddings and (for the parent reward) parent tables of the run's category set."""
+    return TargetFields(config.model.category_set)
+
+
+def reward_config(config: TrainConfig) -> RewardConfig:
+    env = config.env
+    return RewardConfig(
+        step_penalty=env.step_penalty, success_reward=env.success_reward, parent_reward=config.parent_reward
+    )
+
+
+def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:
+    return TrainingSampler(library, config.env.scene_list(), config.env.target_set, seed=seed)
+
+
+def new_model(config: TrainConfig, device: torch.device | str = "cpu") -> NavModel:
+    return build_model(config.model).to(device).train()
+
+
+def clip_gradients(model: NavModel, config: TrainConfig) -> float:
+    """The references clip non-adaptive models at norm 100 and leave SAVN's meta-gradient alone.
+    Returns the norm before clipping (0 when clipping is off)."""
+    limit = config.optim.meta_grad_clip if model.adaptive else config.optim.grad_clip
+    if limit <= 0:
+        return 0.0
+    params = [p for p in model.parameters() if p.grad is not None]
+    return float(torch.nn.utils.clip_grad_norm_(params, limit)) if params else 0.0
+
+
+def trainable(model: NavModel) -> list[torch.Tensor]:
+    return [p for p in model.parameters() if p.requires_grad]
+
+
+def fill_missing_gradients(model: NavModel) -> None:
+    """SAVN hands a None gradient to the shared optimizer as zeros (its learned-loss parameters get
+    none in an episode without inner step), so Adam's moments still decay; the non-adaptive
+    references skip such parameters, which is what None already does."""
+    if model.adaptive:
+        for p in trainable(model):
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+
+
+def seed_for(config: TrainConfig, *stream: int) -> int:
+    """Independent seeds per rank / worker / resumed segment from one config seed."""
+    return int(np.random.SeedSequence([config.seed, *stream]).generate_state(1)[0])

@@ -1,0 +1,189 @@
+"""Typed training configuration (YAML + ``--set key=value``, see :mod:`mapless.config`).
+
+Every check runs in ``__post_init__`` so that a bad value (unknown model, negative learning rate,
+unknown scenes, no budget) is a :class:`~mapless.config.ConfigError` naming the key before any scene is
+loaded or any worker is started.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mapless.config import ConfigError
+from mapless.models.base import ModelConfig
+from mapless.models.registry import MODELS
+from mapless.scenes.catalogue import resolve_scenes
+from mapless.scenes.categories import targets
+from mapless.sim.config import SimConfig
+from mapless.sim.task import TRAIN_MAX_STEPS
+
+#: Models whose reference training uses MJOLNIR's hierarchical (parent-object) reward.
+PARENT_REWARD_MODELS = ("mjolnir_o", "mjolnir_r")
+
+
+def _require(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"config key {key!r}: {message}")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Where training episodes come from.
+
+    scenes: split name (``train``), ``split:room``, or comma-separated FloorPlan names.
+    target_set: target list per room type (``mjolnir22`` or ``savn``).
+    parent_reward: MJOLNIR's parent-object bonus; None = on for mjolnir_o/mjolnir_r (MJOLNIR's
+        ``--partial_reward``), off otherwise.
+    step_penalty, success_reward: SAVN's rewards.
+    max_steps: training episode limit (30 in both references).
+    cache_dir: scene cache folder (None = $MAPLESS_CACHE or ~/.cache/mapless).
+    sim: simulator parameters (they select the scene cache entry).
+    """
+
+    scenes: str = "train"
+    target_set: str = "mjolnir22"
+    parent_reward: bool | None = None
+    step_penalty: float = -0.01
+    success_reward: float = 5.0
+    max_steps: int = TRAIN_MAX_STEPS
+    cache_dir: str | None = None
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        try:
+            names = resolve_scenes(self.scenes)
+        except KeyError as error:  # UnknownNameError is both a MaplessError and a KeyError
+            raise ConfigError(f"config key 'env.scenes': {error}") from None
+        _require(bool(names), "env.scenes", f"{self.scenes!r} selects no scene")
+        try:
+            targets(self.target_set)
+        except KeyError as error:
+            raise ConfigError(f"config key 'env.target_set': {error}") from None
+        _require(self.max_steps > 0, "env.max_steps", f"must be positive, got {self.max_steps}")
+
+    def scene_list(self) -> list[str]:
+        return list(dict.fromkeys(resolve_scenes(self.scenes)))
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """SharedAdam of the references: lr 1e-4, betas (0.9, 0.999), eps 1e-3, AMSGrad.
+
+    grad_clip: max gradient norm of non-adaptive models (the references clip at 100); 0 = off.
+    meta_grad_clip: the same for adaptive models (SAVN applies none: 0).
+    """
+
+    lr: float = 1e-4
+    beta1: float = 0.9
+    beta2: float = 0.999
+    eps: float = 1e-3
+    amsgrad: bool = True
+    grad_clip: float = 100.0
+    meta_grad_clip: float = 0.0
+
+    def __post_init__(self) -> None:
+        _require(self.lr > 0, "optim.lr", f"must be positive, got {self.lr}")
+        _require(0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "optim.beta1/beta2", "must lie in [0, 1)")
+        _require(self.eps > 0, "optim.eps", f"must be positive, got {self.eps}")
+        _require(self.grad_clip >= 0, "optim.grad_clip", f"must be >= 0 (0 = off), got {self.grad_clip}")
+        _require(self.meta_grad_clip >= 0, "optim.meta_grad_clip", f"must be >= 0, got {self.meta_grad_clip}")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """A3C loss constants (γ, τ, entropy β, value coefficient) of the references."""
+
+    gamma: float = 0.99
+    tau: float = 1.0
+    beta: float = 0.01
+    value_coef: float = 0.5
+
+    def __post_init__(self) -> None:
+        _require(0 < self.gamma <= 1, "loss.gamma", f"must lie in (0, 1], got {self.gamma}")
+        _require(0 <= self.tau <= 1, "loss.tau", f"must lie in [0, 1], got {self.tau}")
+        _require(self.beta >= 0, "loss.beta", f"must be >= 0, got {self.beta}")
+        _require(self.value_coef >= 0, "loss.value_coef", f"must be >= 0, got {self.value_coef}")
+
+
+@dataclass(frozen=True)
+class MetaConfig:
+    """Meta-learning of adaptive models (savn, gve, spatt, cvmeta); ignored by the others.
+
+    first_order: first-order meta-gradient instead of SAVN's second order.
+    The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
+    ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
+    """
+
+    first_order: bool = False
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run.
+
+    mode: ``batched`` (B episodes in lockstep, one update per batch) or ``async`` (the references'
+        Hogwild A3C: ``workers`` processes, one update per episode, shared AMSGrad Adam).
+    batch_size: episodes per update in batched mode (per rank under torchrun).
+    workers: worker processes in async mode.
+    episodes / frames: the budget; training stops when either is reached (0 = no limit on that one,
+        but one of them must be set).
+    seed: seeds the episode sampler, the action noise and torch (rank r of torchrun adds r).
+    device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
+    threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
+    checkpoint_every: episodes between checkpoints (a resumable one plus a model snapshot).
+    log_every: episodes between TensorBoard / metrics.jsonl records.
+    progress: show the tqdm bar.
+    """
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    meta: MetaConfig = field(default_factory=MetaConfig)
+    mode: Literal["batched", "async"] = "batched"
+    batch_size: int = 32
+    workers: int = 2
+    episodes: int = 0
+    frames: int = 0
+    seed: int = 1
+    device: str = "cpu"
+    threads: int = 0
+    checkpoint_every: int = 10_000
+    log_every: int = 100
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.model.name not in MODELS:
+            raise ConfigError(
+                f"config key 'model.name': unknown model {self.model.name!r}; valid models: {', '.join(MODELS)}"
+            )
+        _require(self.model.name != "random", "model.name", "the random agent has nothing to train")
+        _require(self.batch_size >= 1, "batch_size", f"must be >= 1, got {self.batch_size}")
+        _require(self.workers >= 1, "workers", f"must be >= 1, got {self.workers}")
+        _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
+        _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
+        _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
+        _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
+        _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
+        _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
+        _require(
+            self.device == "cpu" or self.device.startswith("cuda"),
+            "device",
+            f"must be 'cpu' or 'cuda[:N]', got {self.device!r}",
+        )
+        _require(
+            self.model.category_set == self.env.sim.category_set,
+            "model.category_set",
+            f"{self.model.category_set!r} differs from env.sim.category_set {self.env.sim.category_set!r}",
+        )
+
+    @property
+    def parent_reward(self) -> bool:
+        if self.env.parent_reward is not None:
+            return self.env.parent_reward
+        return self.model.name in PARENT_REWARD_MODELS
+
+    def replace(self, **changes) -> TrainConfig:
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,306 @@
+"""The ``async`` trainer, faithful to SAVN/MJOLNIR: Hogwild A3C with one episode per worker update.
+
+The main process owns a model and a :class:`~mapless.train.optim.SharedAdam` whose tensors live in
+shared memory, starts ``workers`` processes (spawn: forking a process whose torch thread pool is
+running can deadlock) and then only collects per-episode statistics, logs and checkpoints. Each
+worker loops::
+
+    local model <- shared model
+    play one episode at batch size 1 in the gymnasium environment (rollout.run_episode)
+    backward the episode's A3C loss (through the inner loop for adaptive models)
+    clip (non-adaptive models, norm 100), hand the gradients to the shared parameters, optimizer step
+
+without locks, as the references do. A worker that raises or dies (even by SIGKILL) is reported by
+rank, pid and exit code, and the run stops: the main process polls the workers' exit codes while it
+waits for statistics, so it never blocks on a dead worker.
+
+Resuming restores the model, the optimizer state and the counters; the workers' episode streams are
+reseeded from the episode counter (Hogwild updates interleave nondeterministically, so an async run
+is not bit-reproducible anyway; the batched trainer is).
+"""
+
+from __future__ import annotations
+
+import queue as queue_module
+import signal
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.multiprocessing as mp
+
+from mapless.config import to_dict
+from mapless.errors import MaplessError
+from mapless.sim.env import NavEnv
+from mapless.train import checkpoint as ckpt
+from mapless.train.batched import GracefulStop
+from mapless.train.common import (
+    BuiltinLibrary,
+    LibraryFactory,
+    clip_gradients,
+    fill_missing_gradients,
+    new_model,
+    reward_config,
+    seed_for,
+    target_fields,
+    trainable,
+    training_sampler,
+)
+from mapless.train.config import TrainConfig
+from mapless.train.monitor import RunMonitor
+from mapless.train.optim import SharedAdam
+from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_episode
+
+POLL_SECONDS = 0.2
+JOIN_SECONDS = 10.0
+
+
+class WorkerError(MaplessError):
+    """A training worker raised or died; the run was stopped."""
+
+
+def _worker(
+    rank: int,
+    config: TrainConfig,
+    shared_model: torch.nn.Module,
+    shared_states: list[dict[str, torch.Tensor]],
+    results: Any,
+    stop: Any,
+    library_factory: LibraryFactory,
+    seed: int,
+) -> None:
+    # Ctrl-C reaches the whole process group; only the main process decides how to stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        torch.set_num_threads(1)
+        torch.manual_seed(seed)
+        rng = np.random.default_rng(seed)
+        library = library_factory()
+        sampler = training_sampler(config, library, seed)
+        env = NavEnv(
+            library,
+            sampler=sampler,
+            targets=target_fields(config),
+            rewards=reward_config(config),
+            mode="train",
+            max_steps=config.env.max_steps,
+            category_set=config.model.category_set,
+        )
+        device = torch.device("cpu")
+        local = new_model(config)
+        actor = make_actor(local, first_order=config.meta.first_order)
+        keys = observation_keys(local)
+        shared_params, local_params = trainable(shared_model), trainable(local)
+        optimizer = SharedAdam.from_config(shared_params, config.optim)
+        for p, state in zip(shared_params, shared_states, strict=True):
+            optimizer.state[p] = state  # the shared moments and step counters
+        while not stop.is_set():
+            local.load_state_dict(shared_model.state_dict())
+            episode = sampler.sample(rng)
+            noise = rng.random(config.env.max_steps)
+            local.zero_grad(set_to_none=True)
+            trajectory = run_episode(actor, env, episode, noise, keys, device)
+            losses = accumulate_gradients(actor, trajectory, config.loss)
+            fill_missing_gradients(local)
+            clip_gradients(local, config)
+            for lp, sp in zip(local_params, shared_params, strict=True):
+                sp.grad = lp.grad
+            optimizer.step()
+            results.put(
+                (
+                    "episode",
+                    rank,
+                    {
+                        "success": float(trajectory.success[0]),
+                        "spl": float(trajectory.spl()[0]),
+                        "length": int(trajectory.length[0]),
+                        "reward": float(trajectory.total_reward()[0]),
+                        "total": float(losses.total.detach()[0]),
+                        "policy": float(losses.policy.detach()[0]),
+                        "value": float(losses.value.detach()[0]),
+                        "entropy": float(losses.entropy.detach()[0]),
+                    },
+                )
+            )
+    except BaseException:  # report everything, KeyboardInterrupt included, then exit non-zero
+        results.put(("error", rank, traceback.format_exc()))
+        raise SystemExit(1) from None
+
+
+class AsyncTrainer:
+    def __init__(
+        self, config: TrainConfig, run_dir: Path | None, library_factory: LibraryFactory | None = None
+    ):
+        if config.device != "cpu":
+            raise MaplessError("async mode runs its workers on the CPU; use mode=batched for device=cuda")
+        self.config = config
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.library_factory = library_factory or BuiltinLibrary(config)
+        self.counters = {"episodes": 0, "frames": 0, "updates": 0}
+        self.workers: list[Any] = []
+
+    # -- checkpoints -----------------------------------------------------------------------------
+    def _checkpoint(self, final: bool = False) -> None:
+        if self.run_dir is None:
+            return
+        ckpt.save_checkpoint(
+            self.run_dir,
+            {
+                "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+                "optimizer": self.optimizer.state_dict(),
+                "rng": [],
+                "counters": {**self.counters, "world_size": 1},
+                "config": to_dict(self.config),
+            },
+        )
+        ckpt.save_snapshot(self.run_dir, self.model, self.config, self.counters)
+        if final:
+            ckpt.save_final(self.run_dir, self.model, self.config, self.counters)
+
+    def _budget_reached(self) -> bool:
+        cfg = self.config
+        return (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes) or (
+            cfg.frames > 0 and self.counters["frames"] >= cfg.frames
+        )
+
+    # -- workers ---------------------------------------------------------------------------------
+    def _start_workers(self) -> None:
+        cfg = self.config
+        context = mp.get_context("spawn")
+        self.results = context.Queue()
+        self.stop = context.Event()
+        states = [self.optimizer.state[p] for p in trainable(self.model)]
+        segment = self.counters["episodes"]  # a resumed run gets fresh episode streams
+        for rank in range(cfg.workers):
+            process = context.Process(
+                target=_worker,
+                args=(
+                    rank,
+                    cfg,
+                    self.model,
+                    states,
+                    self.results,
+                    self.stop,
+                    self.library_factory,
+                    seed_for(cfg, 40_000 + rank, segment),
+                ),
+                name=f"mapless-worker-{rank}",
+                daemon=True,
+            )
+            process.start()
+            self.workers.append(process)
+
+    def _check_workers(self) -> None:
+        for rank, process in enumerate(self.workers):
+            if process.exitcode is not None:
+                code = process.exitcode
+                how = (
+                    f"was killed by signal {signal.Signals(-code).name}"
+                    if code < 0
+                    else f"exited with code {code}"
+                )
+                raise WorkerError(f"worker {rank} (pid {process.pid}) {how}; the run was stopped")
+
+    def _stop_workers(self) -> None:
+        """Ask the workers to stop, drain their queue so none blocks on a full pipe, then join;
+        a worker still alive after the grace period is terminated."""
+        if not self.workers:
+            return
+        self.stop.set()
+        deadline = time.monotonic() + JOIN_SECONDS
+        while any(p.is_alive() for p in self.workers) and time.monotonic() < deadline:
+            try:
+                while True:
+                    self.results.get_nowait()
+            except (queue_module.Empty, OSError, EOFError):
+                pass
+            time.sleep(0.05)
+        for process in self.workers:
+            if process.is_alive():
+                process.terminate()
+            process.join(timeout=JOIN_SECONDS)
+            if process.is_alive():
+                process.kill()
+                process.join()
+        self.results.close()
+        self.results.cancel_join_thread()
+        self.workers = []
+
+    # -- loop ------------------------------------------------------------------------------------
+    def run(self, resume: dict | None = None) -> dict[str, float]:
+        cfg = self.config
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        torch.manual_seed(seed_for(cfg, 0))
+        self.model = new_model(cfg)
+        self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.optim)
+        if resume is not None:
+            self.model.load_state_dict(resume["model"])
+            self.optimizer.load_state_dict(resume["optimizer"])
+            self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
+        self.model.share_memory()
+        self.optimizer.share_memory()
+        monitor = RunMonitor(
+            self.run_dir,
+            cfg.log_every,
+            cfg.episodes,
+            cfg.frames,
+            self.counters["episodes"],
+            self.counters["frames"],
+            progress=cfg.progress,
+            description=f"{cfg.model.name} async",
+        )
+        start, start_frames = time.perf_counter(), self.counters["frames"]
+        first: tuple[float, int] | None = None  # (time, frames) of the first finished episode
+        stopped = False
+        try:
+            self._start_workers()
+            with GracefulStop() as stop:
+                while not self._budget_reached():
+                    if stop.requested:
+                        stopped = True
+                        break
+                    try:
+                        kind, rank, payload = self.results.get(timeout=POLL_SECONDS)
+                    except queue_module.Empty:
+                        self._check_workers()
+                        continue
+                    if kind == "error":
+                        raise WorkerError(f"worker {rank} failed; the run was stopped:\n{payload}")
+                    self._account(payload, monitor)
+                    if first is None:
+                        first = (time.perf_counter(), self.counters["frames"])
+                    self._check_workers()
+            loop_end = time.perf_counter()
+            self._stop_workers()
+            self._checkpoint(final=not stopped)
+        finally:
+            self._stop_workers()
+            monitor.close()
+        end = loop_end
+        steady = (self.counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
+        return {
+            **{k: float(v) for k, v in self.counters.items()},
+            "seconds": time.perf_counter() - start,
+            "frames_per_s": (self.counters["frames"] - start_frames) / max(end - start, 1e-9),
+            "steady_frames_per_s": steady,
+            "running_success": monitor.running_success,
+            "stopped_early": float(stopped),
+        }
+
+    def _account(self, stats: dict[str, float], monitor: RunMonitor) -> None:
+        before = self.counters["episodes"]
+        self.counters["episodes"] += 1
+        self.counters["frames"] += int(stats["length"])
+        self.counters["updates"] += 1
+        monitor.add_episodes(*(np.array([stats[k]]) for k in ("success", "spl", "length", "reward")))
+        monitor.add_losses(
+            stats["total"], stats["policy"], stats["value"], stats["entropy"] / max(stats["length"], 1)
+        )
+        monitor.advance(self.counters["episodes"], self.counters["frames"])
+        every = self.config.checkpoint_every
+        if self.counters["episodes"] // every > before // every and not self._budget_reached():
+            self._checkpoint()

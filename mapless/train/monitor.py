@@ -1,0 +1,146 @@
+"""Training metrics: TensorBoard scalars, ``metrics.jsonl`` and the tqdm progress bar.
+
+Logged every ``log_every`` episodes, as means over the episodes finished since the last record
+(x axis: training episodes). Keys:
+
+* ``charts/reward``: return of an episode (sum of rewards);
+* ``charts/success``: share of episodes ended by a successful ``Done``;
+* ``charts/spl``: success weighted by shortest path length / max(path length, shortest), lengths in
+  actions with the ``Done`` counted (SAVN's convention);
+* ``charts/episode_length``: actions per episode, ``Done`` included;
+* ``losses/total``, ``losses/policy``, ``losses/value``: per-episode A3C terms (sums over steps, as the
+  reference), averaged over episodes; ``losses/entropy``: mean policy entropy per step;
+* ``perf/frames_per_s``, ``perf/episodes_per_s``: throughput since the previous record (a frame is one
+  environment step of one episode);
+* ``perf/frames``: frames so far.
+
+The progress bar shows episodes (or frames, when that is the budget), frames/s, the running success
+rate of the last 1000 episodes and tqdm's ETA.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+RUNNING_WINDOW = 1000
+METRICS_FILE = "metrics.jsonl"
+
+
+class RunMonitor:
+    def __init__(
+        self,
+        run_dir: Path | None,
+        log_every: int,
+        budget_episodes: int,
+        budget_frames: int,
+        episodes: int = 0,
+        frames: int = 0,
+        progress: bool = True,
+        description: str = "train",
+    ):
+        """``run_dir`` None disables every output (the non-zero ranks of a distributed run)."""
+        self.run_dir = run_dir
+        self.log_every = log_every
+        self.episodes, self.frames = episodes, frames
+        self._next_log = (episodes // log_every + 1) * log_every
+        self._window: dict[str, list[float]] = {}
+        self._running = deque(maxlen=RUNNING_WINDOW)
+        self._mark = (time.perf_counter(), episodes, frames)
+        self._start = self._mark
+        self.writer = None
+        self.bar = None
+        if run_dir is None:
+            return
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes or None)
+        self._jsonl = open(Path(run_dir) / METRICS_FILE, "a")  # noqa: SIM115 - kept open for the run
+        self._by_frames = budget_episodes == 0
+        total = budget_frames if self._by_frames else budget_episodes
+        self.bar = tqdm(
+            total=total,
+            initial=frames if self._by_frames else episodes,
+            unit="frame" if self._by_frames else "ep",
+            desc=description,
+            disable=not progress,
+            dynamic_ncols=True,
+            smoothing=0.05,
+        )
+
+    def add_episodes(
+        self, success: np.ndarray, spl: np.ndarray, length: np.ndarray, reward: np.ndarray
+    ) -> None:
+        for key, values in (
+            ("charts/success", success),
+            ("charts/spl", spl),
+            ("charts/episode_length", length),
+            ("charts/reward", reward),
+        ):
+            self._window.setdefault(key, []).extend(np.asarray(values, dtype=np.float64).tolist())
+        self._running.extend(np.asarray(success, dtype=bool).tolist())
+
+    def add_losses(self, total: float, policy: float, value: float, entropy: float, count: int = 1) -> None:
+        """Loss terms already averaged over ``count`` episodes (weighted accordingly in the record)."""
+        for key, value_ in (
+            ("losses/total", total),
+            ("losses/policy", policy),
+            ("losses/value", value),
+            ("losses/entropy", entropy),
+        ):
+            self._window.setdefault(key, []).extend([float(value_)] * count)
+
+    @property
+    def running_success(self) -> float:
+        return float(np.mean(self._running)) if self._running else 0.0
+
+    def advance(self, episodes: int, frames: int) -> dict[str, float] | None:
+        """Move the counters to these totals; write a record when a log boundary was crossed."""
+        delta = (
+            (frames - self.frames) if self.bar is not None and self._by_frames else episodes - self.episodes
+        )
+        self.episodes, self.frames = episodes, frames
+        if self.bar is not None:
+            self.bar.update(delta)
+            now, ep0, fr0 = self._start
+            fps = (frames - fr0) / max(time.perf_counter() - now, 1e-9)
+            self.bar.set_postfix(
+                ep=episodes, fps=f"{fps:.0f}", success=f"{self.running_success:.3f}", refresh=False
+            )
+        if episodes < self._next_log:
+            return None
+        self._next_log = (episodes // self.log_every + 1) * self.log_every
+        return self._write()
+
+    def _write(self) -> dict[str, float]:
+        now = time.perf_counter()
+        then, ep0, fr0 = self._mark
+        elapsed = max(now - then, 1e-9)
+        record = {key: float(np.mean(values)) for key, values in self._window.items() if values}
+        record["perf/frames_per_s"] = (self.frames - fr0) / elapsed
+        record["perf/episodes_per_s"] = (self.episodes - ep0) / elapsed
+        record["perf/frames"] = float(self.frames)
+        self._mark = (now, self.episodes, self.frames)
+        self._window = {}
+        if self.writer is not None:
+            for key, value in record.items():
+                self.writer.add_scalar(key, value, self.episodes)
+            self._jsonl.write(
+                json.dumps({"episodes": self.episodes, "frames": self.frames, "time": time.time(), **record})
+                + "\n"
+            )
+            self._jsonl.flush()
+        return record
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self.writer.close()
+            self._jsonl.close()
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,266 @@
+"""Acting and the per-episode loss, shared by both trainers.
+
+Two rollout loops produce the same :class:`Trajectory` layout (``[T, B, ...]`` per step):
+
+* :func:`run_episode` plays one episode in the gymnasium :class:`~mapless.sim.env.NavEnv` at batch size
+  1, as a reference worker does (the ``async`` trainer);
+* :func:`run_batch` plays ``B`` episodes in lockstep in :class:`~mapless.sim.vector.BatchedNavEnv` with one
+  batched forward per step (the ``batched`` trainer).
+
+Actions are drawn by inverse-CDF sampling from uniform noise that the caller draws per episode
+(``noise [B, T]``), so the action sequence of an episode depends only on its own noise row and its
+policy, not on how many episodes are stepped together. That is what makes the two loops comparable
+episode by episode (tests/test_train_equivalence.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mapless.episodes.episode import Episode
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
+from mapless.sim.env import NavEnv
+from mapless.sim.vector import BatchedNavEnv
+from mapless.train.a3c_loss import A3CLoss, a3c_loss
+from mapless.train.config import LossConfig
+from mapless.train.meta import InnerLoop, InnerLoopState
+
+OBS_KEYS = ("context", "features", "target_embedding", "target_index")
+
+
+class _RecordingObs(dict):
+    """A dict that remembers which keys were read."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.read: set[str] = set()
+
+    def __getitem__(self, key: str):
+        self.read.add(key)
+        return super().__getitem__(key)
+
+
+def observation_keys(model: NavModel) -> tuple[str, ...]:
+    """The observation keys ``model`` reads, found by one probe forward pass on zeros.
+
+    Gathering the 7x7 feature map is the costliest part of a batched environment step, and several
+    models (cvmeta, mjolnir_o) never read it, so the environment is asked only for what is used.
+    """
+    c = model.num_categories
+    probe = _RecordingObs(
+        context=torch.zeros(1, c, 4),
+        features=torch.zeros(1, model.feature_channels, 7, 7),
+        target_embedding=torch.zeros(1, model.glove_dim),
+        target_index=torch.zeros(1, dtype=torch.long),
+    )
+    device = next((p.device for p in model.parameters()), torch.device("cpu"))
+    probe = _RecordingObs({k: v.to(device) for k, v in probe.items()})
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        model(probe, model.initial_state(1, device), torch.zeros(1, NUM_ACTIONS, device=device))
+    model.train(was_training)
+    return tuple(k for k in OBS_KEYS if k in probe.read)
+
+
+def to_tensors(obs: dict[str, np.ndarray], device: torch.device, batch: bool = True) -> dict[str, Tensor]:
+    """Numpy observations -> tensors on ``device`` (``batch=False`` adds the batch dimension)."""
+    out = {}
+    for key, value in obs.items():
+        tensor = torch.as_tensor(np.asarray(value))
+        out[key] = (tensor if batch else tensor.unsqueeze(0)).to(device, non_blocking=True)
+    return out
+
+
+def sample_actions(logits: Tensor, noise: Tensor) -> Tensor:
+    """Inverse-CDF sample of the softmax policy with one uniform number per row (same law as
+    ``multinomial``, but reproducible per episode whatever the batch)."""
+    cdf = torch.softmax(logits.detach(), dim=-1).cumsum(-1)
+    action = (cdf < noise.unsqueeze(-1)).sum(-1)
+    return action.clamp(max=logits.shape[-1] - 1)  # rounding can leave cdf[-1] a hair below 1
+
+
+@dataclass
+class Trajectory:
+    """Lockstep record of ``B`` episodes over ``T`` steps (padding after an episode's end has mask 0)."""
+
+    logits: Tensor  # [T, B, A] with grad
+    values: Tensor  # [T, B] with grad
+    actions: Tensor  # [T, B]
+    rewards: Tensor  # [T, B]
+    mask: Tensor  # [T, B]
+    success: np.ndarray  # [B] bool
+    length: np.ndarray  # [B] steps taken, the final Done included (SAVN's len(path))
+    optimal_length: np.ndarray  # [B] shortest path in actions incl. Done, -1 if unknown
+
+    @property
+    def frames(self) -> int:
+        return int(self.length.sum())
+
+    def spl(self) -> np.ndarray:
+        opt = self.optimal_length.astype(np.float64)
+        ok = self.success & (opt > 0)
+        return np.where(ok, opt / np.maximum(self.length, np.maximum(opt, 1)), 0.0)
+
+    def total_reward(self) -> np.ndarray:
+        return (self.rewards * self.mask).sum(0).cpu().numpy()
+
+
+class Actor:
+    """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop."""
+
+    def __init__(self, model: NavModel, inner: InnerLoop | None):
+        self.model = model
+        self.inner = inner
+        self.state: InnerLoopState | None = None
+
+    def start(self, batch_size: int) -> None:
+        self.state = self.inner.start(batch_size) if self.inner is not None else None
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        if self.inner is None:
+            return self.model(obs, hidden, prev_policy)
+        return self.inner.forward(self.state, obs, hidden, prev_policy)
+
+    def observe(self, output: ModelOutput, alive: Tensor) -> None:
+        if self.inner is not None:
+            self.inner.observe(self.state, output, alive)
+
+    def backward(self, loss: Tensor) -> None:
+        if self.inner is None:
+            loss.backward()
+        else:
+            self.inner.backward(self.state, loss)
+
+
+def make_actor(model: NavModel, first_order: bool = False) -> Actor:
+    return Actor(model, InnerLoop(model, first_order=first_order) if model.adaptive else None)
+
+
+def _stack(
+    logits: list[Tensor],
+    values: list[Tensor],
+    actions: list[Tensor],
+    rewards: list[np.ndarray],
+    mask: list[np.ndarray],
+    device: torch.device,
+) -> tuple[Tensor, ...]:
+    return (
+        torch.stack(logits),
+        torch.stack(values).squeeze(-1),
+        torch.stack(actions),
+        torch.as_tensor(np.stack(rewards), device=device),
+        torch.as_tensor(np.stack(mask), device=device),
+    )
+
+
+def run_batch(
+    actor: Actor,
+    env: BatchedNavEnv,
+    episodes: list[Episode],
+    noise: np.ndarray,
+    obs_keys: tuple[str, ...],
+    device: torch.device,
+) -> Trajectory:
+    """Play ``episodes`` to their end in lockstep (slot ``b`` uses ``noise[b, t]`` at step ``t``)."""
+    batch = len(episodes)
+    env.reset(np.arange(batch), episodes)
+    actor.start(batch)
+    hidden = actor.model.initial_state(batch, device)
+    prev_policy = torch.zeros(batch, NUM_ACTIONS, device=device)
+    noise_t = torch.as_tensor(noise, dtype=torch.float32, device=device)
+    logits, values, actions, rewards, mask = [], [], [], [], []
+    success = np.zeros(batch, dtype=bool)
+    for t in range(noise.shape[1]):
+        out = actor.forward(to_tensors(env.observe(obs_keys), device), hidden, prev_policy)
+        action = sample_actions(out.logits, noise_t[:, t])
+        step = env.step(action.cpu().numpy())
+        success |= step.success
+        logits.append(out.logits)
+        values.append(out.value)
+        actions.append(action)
+        rewards.append(step.reward)
+        mask.append(step.active.astype(np.float32))
+        # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
+        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        actor.observe(out, torch.as_tensor(~env.done, device=device))
+        if env.done.all():
+            break
+    stacked = _stack(logits, values, actions, rewards, mask, device)
+    return Trajectory(
+        *stacked, success=success, length=env.steps.copy(), optimal_length=env.optimal_length.copy()
+    )
+
+
+def run_episode(
+    actor: Actor,
+    env: NavEnv,
+    episode: Episode,
+    noise: np.ndarray,
+    obs_keys: tuple[str, ...],
+    device: torch.device,
+) -> Trajectory:
+    """Play one episode at batch size 1, the way a reference worker does (``noise [T]``)."""
+    obs, info = env.reset(options={"episode": episode})
+    actor.start(1)
+    hidden = actor.model.initial_state(1, device)
+    prev_policy = torch.zeros(1, NUM_ACTIONS, device=device)
+    logits, values, actions, rewards, mask = [], [], [], [], []
+    success, steps = False, 0
+    for t in range(len(noise)):
+        out = actor.forward(
+            to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
+        )
+        action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
+        obs, reward, terminated, truncated, info = env.step(int(action))
+        steps += 1
+        success = bool(info["success"])
+        logits.append(out.logits)
+        values.append(out.value)
+        actions.append(action)
+        rewards.append(np.array([reward], dtype=np.float32))
+        mask.append(np.ones(1, dtype=np.float32))
+        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        done = terminated or truncated
+        actor.observe(out, torch.tensor([not done], device=device))
+        if done:
+            break
+    stacked = _stack(logits, values, actions, rewards, mask, device)
+    return Trajectory(
+        *stacked,
+        success=np.array([success]),
+        length=np.array([steps]),
+        optimal_length=np.array([info["optimal_length"]]),
+    )
+
+
+def episode_losses(trajectory: Trajectory, config: LossConfig) -> A3CLoss:
+    """Per-episode A3C loss terms ``[B]``. Every training episode ends (Done or the 30-step limit)
+    before the update, so nothing is bootstrapped (the references' R = 0)."""
+    return a3c_loss(
+        trajectory.logits,
+        trajectory.values,
+        trajectory.actions,
+        trajectory.rewards,
+        trajectory.mask,
+        None,
+        gamma=config.gamma,
+        tau=config.tau,
+        beta=config.beta,
+        value_coef=config.value_coef,
+    )
+
+
+def accumulate_gradients(actor: Actor, trajectory: Trajectory, config: LossConfig) -> A3CLoss:
+    """Backpropagate the *mean* per-episode loss of the batch into ``.grad`` (the mean of the
+    per-episode gradients, so one batched update moves as far as one reference update would with the
+    average episode; at B = 1 it is exactly the reference's gradient)."""
+    losses = episode_losses(trajectory, config)
+    actor.backward(losses.total.mean())
+    return losses

@@ -1,0 +1,64 @@
+"""Entry point of a training run: run folder, resolved config, resume, trainer dispatch."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from mapless.config import ConfigError, apply_overrides, from_dict, save_config
+from mapless.train import checkpoint as ckpt
+from mapless.train import distributed as dist
+from mapless.train.batched import BatchedTrainer
+from mapless.train.common import LibraryFactory
+from mapless.train.config import TrainConfig
+from mapless.train.hogwild import AsyncTrainer
+
+
+def default_run_dir(config: TrainConfig, root: str | Path = "runs", label: str = "") -> Path:
+    """``runs/<label>__<model>__<mode>__s<seed>__<time>`` (CleanRL-style: readable and unique)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    parts = [p for p in (label, config.model.name, config.mode, f"s{config.seed}", stamp) if p]
+    return Path(root) / "__".join(parts)
+
+
+def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tuple[TrainConfig, dict]:
+    """The saved config of a run (plus ``overrides``, e.g. a larger budget) and its last checkpoint."""
+    run_dir = Path(run_dir)
+    payload = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
+    if payload.get("kind") != "checkpoint":
+        raise ckpt.CheckpointError(f"{run_dir / ckpt.CHECKPOINT_FILE} is not a resumable checkpoint")
+    data = apply_overrides(payload["config"], overrides or [])
+    return from_dict(TrainConfig, data), payload
+
+
+def train(
+    config: TrainConfig,
+    run_dir: str | Path,
+    resume: dict | None = None,
+    library_factory: LibraryFactory | None = None,
+) -> dict[str, float]:
+    """Train ``config`` into ``run_dir`` (resuming from the loaded checkpoint ``resume`` if given).
+
+    Under torchrun (``WORLD_SIZE`` > 1) every rank calls this; rank 0's ``run_dir`` is used by all.
+    Returns the final counters and throughput.
+    """
+    ctx = dist.init_distributed(config.device) if config.mode == "batched" else dist.DistContext()
+    if config.mode == "async" and dist.launched_by_torchrun():
+        raise ConfigError(
+            "config key 'mode': async (Hogwild) runs on one machine; use mode=batched under torchrun"
+        )
+    try:
+        run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
+        if resume is not None:
+            if ckpt.config_of(resume).model != config.model:
+                raise ConfigError(
+                    "config key 'model': a run cannot be resumed with another model configuration"
+                )
+        if ctx.is_main:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            save_config(config, run_dir / ckpt.CONFIG_FILE)
+        if config.mode == "async":
+            return AsyncTrainer(config, run_dir, library_factory).run(resume)
+        return BatchedTrainer(config, run_dir, library_factory, ctx).run(resume)
+    finally:
+        dist.shutdown(ctx)

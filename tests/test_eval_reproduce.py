@@ -1,0 +1,158 @@
+"""End to end on real (built) scenes: `mapless reproduce` trains, selects on val, reports on test and
+writes the markdown/JSON/PNGs; `mapless eval` on an untrained baseline and on a run folder.
+
+Three scenes only (train FloorPlan1, val FloorPlan21, test FloorPlan26), built once per module into a
+temporary cache; episode files are made here so the test does not depend on the shipped sets."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mapless.cli import main
+from mapless.episodes import evalsets
+from mapless.episodes.episode import Episode
+from mapless.sim.cache import fingerprint
+from mapless.sim.config import SimConfig
+from mapless.sim.library import SceneLibrary
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Single-threaded torch, as in the spawn workers: two threads on a busy 2-core machine crawl."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def make_episodes(library: SceneLibrary, scene: str, n: int, seed: int) -> list[Episode]:
+    rng = np.random.default_rng(seed)
+    data = library[scene]
+    types = sorted(
+        {data.instance_types[i] for i in np.unique(data.visible_matrix_csr[1])}
+        & {"Mug", "Toaster", "Bread", "Apple", "Spatula", "CoffeeMachine"}
+    )
+    out = []
+    while len(out) < n:
+        target = types[rng.integers(len(types))]
+        start = int(rng.choice(np.flatnonzero(data.horizon == 0)))
+        d = int(data.target_distances(target)[start])
+        if d > 0:
+            pose = (float(data.x[start]), float(data.z[start]), int(data.yaw[start]), 0)
+            out.append(Episode(scene, target, pose, d + 1, episode_id=f"{scene}/{len(out)}"))
+    return out
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("reproduce")
+    previous = os.environ.get("MAPLESS_CACHE")
+    os.environ["MAPLESS_CACHE"] = str(root / "cache")  # spawn workers inherit it
+    library = SceneLibrary.builtin()
+    fp = fingerprint(SimConfig())
+    evalsets.save(
+        root / "val.json.gz", make_episodes(library, "FloorPlan21", 6, 0), "val", "mjolnir22", 0, fp
+    )
+    evalsets.save(
+        root / "test.json.gz", make_episodes(library, "FloorPlan26", 6, 1), "test", "mjolnir22", 0, fp
+    )
+    library["FloorPlan1"]
+    config = root / "table1.yaml"
+    config.write_text(
+        f"""experiment: table1
+budget: smoke
+models: [random, a3c]
+focus: a3c
+seeds: 1
+gif: false
+runs_dir: {root / "runs"}
+train:
+  episodes: 16
+  batch_size: 8
+  checkpoint_every: 8
+  log_every: 8
+  progress: false
+  model: {{hidden_size: 64}}
+  env: {{scenes: FloorPlan1}}
+eval:
+  per_room: 6
+  rooms: [kitchen]
+  select_file: {root / "val.json.gz"}
+  report_file: {root / "test.json.gz"}
+  batch_size: 6
+  workers: 1
+"""
+    )
+    yield root, config
+    if previous is None:
+        os.environ.pop("MAPLESS_CACHE", None)
+    else:
+        os.environ["MAPLESS_CACHE"] = previous
+
+
+def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
+    root, config = workspace
+    reports = root / "reports"
+    assert main(["reproduce", "table1", "--config", str(config), "--reports", str(reports)]) == 0
+    md = (reports / "table1" / "table1.md").read_text()
+    assert "| random |" in md and "| a3c |" in md and "SR L≥5" in md
+    payload = json.loads((reports / "table1" / "table1.json").read_text())
+    a3c = next(m for m in payload["models"] if m["model"] == "a3c")
+    selection = a3c["runs"][0]["selection"]
+    # Snapshots at 8 and 16 episodes (the final model is the 16-episode snapshot): both scored on val.
+    assert [c["episodes"] for c in selection["candidates"]] == [8, 16]
+    assert selection["chosen"] in [c["path"] for c in selection["candidates"]]
+    assert len(a3c["episodes"][0]) == 6 and {e["scene"] for e in a3c["episodes"][0]} == {"FloorPlan26"}
+    run_dir = Path(a3c["runs"][0]["run_dir"])
+    assert (run_dir / "eval" / "val_model_0000000008.json").is_file()
+
+    # Figures reuse the finished runs (no retraining) and write their PNGs.
+    overrides = ["--set", "experiment=figure3"]
+    assert main(["reproduce", "figure3", "--config", str(config), *overrides, "--reports", str(reports)]) == 0
+    assert (reports / "figure3" / "figure3_exploration.png").stat().st_size > 10_000
+    overrides = ["--set", "experiment=figures45"]
+    assert (
+        main(["reproduce", "figures45", "--config", str(config), *overrides, "--reports", str(reports)]) == 0
+    )
+    figures = json.loads((reports / "figures45" / "figures45.json").read_text())["figures"]
+    assert figures, "at least one of Figure 4 / Figure 5 has an episode"
+    for name in figures:
+        assert (reports / "figures45" / f"{name}.png").stat().st_size > 10_000
+    assert "reusing finished run" in capsys.readouterr().out
+
+
+def test_eval_cli_oracle_and_run_folder(workspace, capsys):
+    root, _ = workspace
+    out = root / "oracle"
+    args = [
+        "eval",
+        "oracle",
+        "--split",
+        "test",
+        "--episodes",
+        str(root / "test.json.gz"),
+        "--workers",
+        "1",
+        "--out",
+        str(out),
+    ]
+    assert main(args) == 0
+    record = json.loads((out / "test.json").read_text())
+    assert record["estimates"]["success"]["mean"] == 1.0 and record["estimates"]["spl"]["mean"] == 1.0
+    assert "| oracle | 100.0" in (out / "test.md").read_text()
+    runs = sorted((root / "runs").glob("a3c__*"))
+    if runs:  # the run of the reproduce test: select on val, report on test, with 2 workers
+        val = ["--episodes", str(root / "test.json.gz")]
+        assert (
+            main(
+                ["eval", str(runs[0]), "--split", "test", *val, "--workers", "2", "--out", str(root / "sel")]
+            )
+            == 0
+        )
+        assert (root / "sel" / "test.json").is_file()

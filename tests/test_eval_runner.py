@@ -1,0 +1,158 @@
+"""The evaluation runner on hand-made fixture scenes: oracle = perfect scores, determinism across
+worker counts, seeded sampling, test-time adaptation of meta models, scene partitioning."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+import torch
+from eval_fixtures import fixture_episodes, fixture_library
+
+from mapless.evaluate.metrics import aggregate
+from mapless.evaluate.runner import (
+    AdaptiveModelAgent,
+    AgentSpec,
+    EvalSettings,
+    LibrarySpec,
+    evaluate,
+    partition,
+    run_episodes,
+    target_fields,
+)
+from mapless.models import build_model
+from mapless.sim.vector import BatchedNavEnv
+
+LIBRARY = LibrarySpec(factory="eval_fixtures:fixture_library")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Single-threaded torch, as in the spawn workers: two threads on a busy 2-core machine crawl."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    return fixture_episodes(per_scene=12)
+
+
+def trajectories(run):
+    return [(r.index, r.success, r.length, r.poses, r.actions) for r in run.results]
+
+
+def test_oracle_scores_perfectly(episodes):
+    run = evaluate(AgentSpec(kind="oracle"), episodes, EvalSettings(batch_size=5, workers=1), LIBRARY)
+    m = aggregate(run.results)
+    assert m["success"] == 1.0 and m["spl"] == 1.0 and m["l5_spl"] == 1.0
+    assert m["done_rate"] == 1.0 and m["failed_action_rate"] == 0.0
+    assert [r.length for r in run.results] == [e.optimal_length for e in episodes]
+    assert [r.index for r in run.results] == list(range(len(episodes)))
+    # The path is the pose sequence: it ends where the target is visible.
+    lib = fixture_library()
+    for r, e in zip(run.results, episodes, strict=True):
+        data = lib[e.scene]
+        assert data.target_distances(e.target)[r.poses[-1]] == 0
+
+
+def test_results_independent_of_workers_and_batch_neighbours(episodes):
+    spec = AgentSpec(model={"name": "a3c", "hidden_size": 64}, init_seed=3)
+    one = evaluate(spec, episodes, EvalSettings(batch_size=6, workers=1, seed=7), LIBRARY)
+    two = evaluate(spec, episodes, EvalSettings(batch_size=6, workers=2, seed=7), LIBRARY)
+    assert trajectories(one) == trajectories(two)
+    # Reversed order (same set positions): other episodes share each batch, same trajectories.
+    n = len(episodes)
+    rev = run_episodes(
+        spec.build(6),
+        fixture_library(),
+        episodes[::-1],
+        list(range(n))[::-1],
+        EvalSettings(batch_size=6, seed=7),
+    )
+    assert trajectories(type(one)(rev, 1.0, 1)) == trajectories(one)
+    other_seed = evaluate(spec, episodes, EvalSettings(batch_size=6, workers=1, seed=8), LIBRARY)
+    assert trajectories(other_seed) != trajectories(one)
+
+
+def test_random_policy_samples_uniformly_and_respects_limits(episodes):
+    run = evaluate(
+        AgentSpec(model={"name": "random"}), episodes * 4, EvalSettings(batch_size=16, workers=1), LIBRARY
+    )
+    counts = Counter(a for r in run.results for a in r.actions)
+    total = sum(counts.values())
+    assert set(counts) == set(range(6))
+    for a in range(6):
+        assert abs(counts[a] / total - 1 / 6) < 0.05
+    for r in run.results:
+        limit = 200 if r.room_type == "living_room" else 100
+        assert r.length <= limit
+        assert r.called_done == (r.actions[-1] == 5)
+        assert r.called_done or r.length == limit
+
+
+def test_greedy_ignores_the_sampling_seed(episodes):
+    spec = AgentSpec(model={"name": "a3c", "hidden_size": 64}, init_seed=0)
+    a = evaluate(spec, episodes[:8], EvalSettings(batch_size=4, workers=1, seed=1, greedy=True), LIBRARY)
+    b = evaluate(spec, episodes[:8], EvalSettings(batch_size=4, workers=1, seed=2, greedy=True), LIBRARY)
+    assert trajectories(a) == trajectories(b)
+
+
+def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
+    torch.manual_seed(0)
+    model = build_model("savn", hidden_size=64)
+    batch = 3
+    agent = AdaptiveModelAgent(model, batch)
+    assert agent.start_every == model.config.interaction_steps == 6
+    library = fixture_library()
+    env = BatchedNavEnv(
+        library, ["FloorPlan5", "FloorPlan205"], batch, targets=target_fields("mjolnir101"), mode="eval"
+    )
+    slots = np.arange(batch)
+    env.reset(slots, episodes[:batch])
+    agent.start(slots, env)
+    theta = {n: p.detach().clone() for n, p in model.named_parameters()}
+    for _ in range(6):
+        probs = agent.policy(env.observe(agent.observation_keys), env)
+        actions = np.zeros(batch, dtype=np.int64)  # MoveAhead keeps every episode alive
+        agent.after_step(actions, env.step(actions))
+    assert agent.updates.tolist() == [1, 1, 1]
+    name = "lstm.weight_ih"
+    moved = (agent.state.fast[name] - theta[name]).abs().amax(dim=(1, 2))
+    assert bool((moved > 0).all())
+    # φ and θ themselves never change; a new episode starts again from θ.
+    for n, p in model.named_parameters():
+        assert torch.equal(p, theta[n])
+    agent.start(np.array([1]), env)
+    assert torch.equal(agent.state.fast[name][1], theta[name])
+    assert agent.updates.tolist() == [1, 0, 1]
+    assert probs.shape == (batch, 6)
+
+
+def test_adaptive_model_evaluates_end_to_end(episodes):
+    spec = AgentSpec(model={"name": "savn", "hidden_size": 64}, init_seed=0)
+    run = evaluate(spec, episodes[:10], EvalSettings(batch_size=4, workers=1), LIBRARY)
+    assert [r.index for r in run.results] == list(range(10))
+    assert all(1 <= r.length <= 200 for r in run.results)
+
+
+def test_run_episodes_in_process_matches_oracle_lengths(episodes):
+    from mapless.evaluate.runner import OracleAgent
+
+    results = run_episodes(
+        OracleAgent(4), fixture_library(), episodes[:6], [10, 11, 12, 13, 14, 15], EvalSettings(batch_size=4)
+    )
+    assert [r.index for r in results] == [10, 11, 12, 13, 14, 15]
+    assert [r.length for r in results] == [e.optimal_length for e in episodes[:6]]
+
+
+def test_partition_keeps_scenes_whole_and_balances(episodes):
+    shares = partition(episodes, 2)
+    assert sorted(i for s in shares for i in s) == list(range(len(episodes)))
+    scenes = [{episodes[i].scene for i in s} for s in shares]
+    assert scenes[0].isdisjoint(scenes[1])
+    assert partition(episodes, 5) == [s for s in partition(episodes, 5) if s]
+    assert len(partition(episodes, 5)) == 2  # only two scenes to share out

@@ -1,0 +1,223 @@
+"""The batched functional inner loop against a hand-unrolled per-episode autograd computation."""
+
+import pytest
+import torch
+from torch.func import functional_call
+
+from mapless.knowledge import synthetic_knowledge
+from mapless.models import build_model
+from mapless.models.synthetic import synthetic_observations
+from mapless.train.a3c_loss import a3c_loss
+from mapless.train.meta import InnerLoop
+
+K = 3  # interaction steps per inner update in these tests
+LR = 0.05  # large enough that adaptation visibly changes the outputs
+
+
+def make_model(name: str = "savn", max_updates: int = 2, inner_lr: float = LR):
+    torch.manual_seed(0)
+    knowledge = synthetic_knowledge(5, 300, seed=1)
+    model = (
+        build_model(
+            name,
+            knowledge=knowledge,
+            hidden_size=16,
+            interaction_steps=K,
+            max_inner_updates=max_updates,
+            inner_lr=inner_lr,
+        )
+        .double()
+        .eval()
+    )
+    return model, knowledge
+
+
+def make_episodes(knowledge, T: int, B: int = 2, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    obs = []
+    for _ in range(T):
+        o = synthetic_observations(B, knowledge, generator=gen)
+        obs.append({k: (v.double() if v.is_floating_point() else v) for k, v in o.items()})
+    actions = torch.randint(0, 6, (T, B), generator=gen)
+    rewards = torch.randn(T, B, generator=gen, dtype=torch.float64)
+    return obs, actions, rewards
+
+
+def batched_run(model, loop, obs, actions, rewards, lengths):
+    T, B = actions.shape
+    mask = torch.stack([torch.arange(T) < n for n in lengths], dim=1).double()
+    state = loop.start(B)
+    hidden = tuple(x.double() for x in model.initial_state(B))
+    policy = torch.zeros(B, 6, dtype=torch.float64)
+    logits, values = [], []
+    for t in range(T):
+        out = loop.forward(state, obs[t], hidden, policy)
+        logits.append(out.logits)
+        values.append(out.value)
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+        alive = torch.tensor([t < n - 1 for n in lengths])  # False on an episode's last step
+        loop.observe(state, out, alive)
+    loss = a3c_loss(torch.stack(logits), torch.stack(values), actions, rewards, mask).total.sum()
+    return state, torch.stack(logits), loss
+
+
+def hand_run(model, obs, actions, rewards, lengths, max_updates, create_graph=True):
+    """Per episode, plain autograd: θ as a dict, SAVN's name rule, one grad call per inner step."""
+    theta0 = {n: p for n, p in model.named_parameters() if p.requires_grad}
+    names = [n for n in theta0 if "ll" not in n]  # SAVN: every name without "ll" is adapted
+    total, all_logits, records = 0.0, [], []
+    for b, n in enumerate(lengths):
+        theta = {name: theta0[name] for name in names}
+        hidden = tuple(x.double() for x in model.initial_state(1))
+        policy = torch.zeros(1, 6, dtype=torch.float64)
+        rows, updates, logits, values = [], 0, [], []
+        for t in range(n):
+            single = {k: v[b : b + 1] for k, v in obs[t].items()}
+            out = functional_call(model, theta, (single, hidden, policy))
+            logits.append(out.logits)
+            values.append(out.value)
+            hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+            rows.append(torch.cat([hidden[0], policy], -1))
+            if len(rows) == K:
+                if updates < max_updates and t < n - 1:
+                    loss = model.learned_loss(torch.stack(rows, 1))[0]
+                    grads = torch.autograd.grad(
+                        loss, [theta[m] for m in names], create_graph=create_graph, allow_unused=True
+                    )
+                    g = dict(zip(names, grads, strict=True))
+                    theta = {m: theta[m] if g[m] is None else theta[m] - LR * g[m] for m in names}
+                    records.append((b, g, theta))
+                    updates += 1
+                rows = []
+        all_logits.append(torch.cat(logits))
+        total = (
+            total
+            + a3c_loss(
+                torch.stack(logits),
+                torch.stack(values),
+                actions[:n, b : b + 1],
+                rewards[:n, b : b + 1],
+                torch.ones(n, 1, dtype=torch.float64),
+            ).total.sum()
+        )
+    return total, all_logits, records
+
+
+def grads_of(model):
+    return {
+        n: (p.grad.clone() if p.grad is not None else torch.zeros_like(p))
+        for n, p in model.named_parameters()
+    }
+
+
+@pytest.mark.parametrize("name", ["savn", "cvmeta"])
+def test_inner_loop_equals_hand_unrolled_second_order(name):
+    model, knowledge = make_model(name)
+    lengths = [7, 4]  # episode 1 ends at step 4: no second update for it
+    obs, actions, rewards = make_episodes(knowledge, 7)
+    state, logits, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, lengths)
+    assert state.updates == 2
+    loss.backward()
+    batched = grads_of(model)
+    model.zero_grad(set_to_none=True)
+    hand_loss, hand_logits, records = hand_run(model, obs, actions, rewards, lengths, 2)
+    assert [r[0] for r in records] == [0, 0, 1]
+    hand_loss.backward()
+    hand = grads_of(model)
+    assert loss.item() == pytest.approx(hand_loss.item(), rel=1e-10)
+    for b, n in enumerate(lengths):
+        assert torch.allclose(logits[:n, b], hand_logits[b], atol=1e-10)
+    for n in batched:
+        assert torch.allclose(batched[n], hand[n], atol=1e-9, rtol=1e-7), n
+    # Adaptation really changed the policy: without inner steps the logits agree only before step k.
+    _, plain, _ = batched_run(model, InnerLoop(model, max_updates=0), obs, actions, rewards, lengths)
+    assert torch.allclose(plain[:K], logits[:K], atol=1e-12)
+    assert not torch.allclose(plain[K:, 0], logits[K:, 0], atol=1e-6)
+    phi = model.learned_loss_parameter_names()
+    assert all(batched[n].abs().sum() > 0 for n in phi)
+
+
+def test_phi_gets_gradient_only_through_the_inner_step():
+    model, knowledge = make_model()
+    obs, actions, rewards = make_episodes(knowledge, K - 1)  # shorter than k: no inner step at all
+    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, [K - 1, K - 1])
+    loss.backward()
+    assert all(p.grad is None for n, p in model.named_parameters() if n.startswith("ll_"))
+    assert model.lstm.weight_ih.grad.abs().sum() > 0
+
+    # With α = 0 the inner step is the identity and φ's meta-gradient vanishes exactly.
+    model, knowledge = make_model(inner_lr=0.0)
+    obs, actions, rewards = make_episodes(knowledge, 5)
+    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, [5, 5])
+    loss.backward()
+    assert all(p.grad.abs().max() == 0 for n, p in model.named_parameters() if n.startswith("ll_"))
+
+
+def test_first_order_differs_from_second_order_by_the_hessian_term():
+    lengths = [5, 5]  # one inner step (after step 3), then two adapted steps
+    model, knowledge = make_model(max_updates=1)
+    obs, actions, rewards = make_episodes(knowledge, 5, seed=3)
+    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, lengths)
+    loss.backward()
+    second = grads_of(model)
+    model.zero_grad(set_to_none=True)
+    loop = InnerLoop(model, first_order=True)
+    state, _, loss_fo = batched_run(model, loop, obs, actions, rewards, lengths)
+    loop.backward(state, loss_fo)
+    first = grads_of(model)
+    model.zero_grad(set_to_none=True)
+    assert loss_fo.item() == pytest.approx(loss.item(), rel=1e-12)  # same trajectory and outer loss
+
+    # Hand: v = ∂L/∂θ_1, term = (∂g/∂θ_0)ᵀ v (the interaction loss's Hessian-vector product).
+    hand_loss, _, records = hand_run(model, obs, actions, rewards, lengths, 1)
+    theta0 = dict(model.named_parameters())
+    term = {n: torch.zeros_like(p) for n, p in theta0.items()}
+    for _, g, theta1 in records:
+        used = [m for m in g if g[m] is not None]
+        v = torch.autograd.grad(hand_loss, [theta1[m] for m in used], retain_graph=True)
+        inner = sum((g[m] * vm.detach()).sum() for m, vm in zip(used, v, strict=True))
+        names = [n for n in theta0 if not n.startswith("ll_")]
+        hvp = torch.autograd.grad(inner, [theta0[n] for n in names], retain_graph=True, allow_unused=True)
+        for n, h in zip(names, hvp, strict=True):
+            if h is not None:
+                term[n] += h
+    for n in second:
+        if n.startswith("ll_"):
+            assert torch.allclose(first[n], second[n], atol=1e-10), n  # φ: identical for one step
+            assert second[n].abs().sum() > 0
+        else:
+            assert torch.allclose(second[n] - first[n], -LR * term[n], atol=1e-9, rtol=1e-6), n
+    assert sum(term[n].abs().sum() for n in term) > 0
+
+
+def test_test_time_adaptation_keeps_no_graph_and_matches_training_outputs():
+    model, knowledge = make_model()
+    obs, actions, rewards = make_episodes(knowledge, 7, seed=5)
+    _, train_logits, _ = batched_run(model, InnerLoop(model), obs, actions, rewards, [7, 7])
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    loop = InnerLoop(model, meta_train=False)
+    state, eval_logits, _ = batched_run(model, loop, obs, actions, rewards, [7, 7])
+    assert state.updates == 2
+    assert torch.allclose(eval_logits, train_logits, atol=1e-10)
+    assert all(w.grad_fn is None for w in state.fast.values())
+    assert all(torch.equal(before[n], p) for n, p in model.named_parameters())
+    with pytest.raises(RuntimeError):
+        loop.backward(state, eval_logits.sum())
+
+
+def test_update_limit_and_no_update_after_episode_end():
+    model, knowledge = make_model(max_updates=1)
+    obs, actions, rewards = make_episodes(knowledge, 7)
+    state, _, _ = batched_run(model, InnerLoop(model), obs, actions, rewards, [7, 7])
+    assert state.updates == 1
+    model, knowledge = make_model()
+    state, _, _ = batched_run(model, InnerLoop(model), obs, actions, rewards, [K, K])  # both end at step k
+    assert state.updates == 0
+
+
+def test_non_adaptive_models_are_rejected():
+    model, _ = make_model()
+    a3c = build_model("a3c", knowledge=synthetic_knowledge(5), hidden_size=16)
+    assert model.adaptive and not a3c.adaptive
+    with pytest.raises(TypeError):
+        InnerLoop(a3c)

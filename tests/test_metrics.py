@@ -1,0 +1,129 @@
+"""Metrics on hand-computed episodes: SPL, the L>=5 bucket, Done / failed-action rates, exploration
+ratio, bootstrap intervals and the report cells."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapless.evaluate.metrics import (
+    EpisodeResult,
+    aggregate,
+    exploration_curve,
+    exploration_ratio,
+    in_l5,
+    spl,
+    summarize,
+)
+from mapless.evaluate.report import format_estimate, model_record, model_table
+from mapless.evaluate.stats import bootstrap_ci, mean_std, seed_estimates
+
+
+def ep(index, success, length, optimal, done=True, failed=0, poses=None, room="kitchen") -> EpisodeResult:
+    poses = tuple(poses) if poses is not None else tuple(range(1, length + 1))
+    assert len(poses) == length
+    return EpisodeResult(
+        index=index, episode_id=f"e{index}", scene="FloorPlan1" if room == "kitchen" else "FloorPlan201",
+        room_type=room, target="Mug", success=success, length=length, optimal_length=optimal, called_done=done,
+        failed_actions=failed, reward=0.0, start_pose=0, poses=poses,
+    )  # fmt: skip
+
+
+def test_spl_hand_values():
+    # Optimal 4 actions (3 moves + Done) taken in 8: SPL 0.5. Exactly optimal: 1. Failure: 0.
+    assert spl(True, 8, 4) == 0.5
+    assert spl(True, 4, 4) == 1.0
+    assert spl(False, 4, 4) == 0.0
+    # The max() clamp: a (simulator-inconsistent) shorter-than-optimal success still scores 1, not 2.
+    assert spl(True, 2, 4) == 1.0
+    # Unknown optimal length (SAVN's best = inf): SPL 0, and the episode is in the L>=5 bucket too.
+    assert spl(True, 5, -1) == 0.0
+    assert in_l5(-1) and in_l5(5) and not in_l5(4)
+
+
+def test_aggregate_hand_computed_set():
+    results = [
+        ep(0, True, 8, 4),  # SPL 0.5, not L>=5
+        ep(1, True, 10, 5),  # SPL 0.5, L>=5
+        ep(2, False, 100, 7, done=False, failed=10),  # timeout, L>=5
+        ep(3, True, 6, 6, failed=0),  # SPL 1.0, L>=5
+    ]
+    m = aggregate(results)
+    assert m["episodes"] == 4 and m["l5_episodes"] == 3
+    assert m["success"] == pytest.approx(0.75)
+    assert m["spl"] == pytest.approx((0.5 + 0.5 + 0 + 1.0) / 4)
+    assert m["l5_success"] == pytest.approx(2 / 3)
+    assert m["l5_spl"] == pytest.approx((0.5 + 0 + 1.0) / 3)
+    assert m["ep_length"] == pytest.approx((8 + 10 + 100 + 6) / 4)
+    assert m["done_rate"] == pytest.approx(0.75)
+    assert m["failed_action_rate"] == pytest.approx(10 / 124)
+
+
+def test_savn_spl_equals_paper_spl_when_lengths_are_consistent():
+    # SAVN: best / eps_len on success, no clamp. Equal to the paper's formula whenever L >= L*.
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        optimal = int(rng.integers(2, 20))
+        length = int(rng.integers(optimal, 101))
+        assert spl(True, length, optimal) == pytest.approx(optimal / length)
+
+
+def test_exploration_ratio_paper_example():
+    # "if an agent only explores two states in the first five steps, the rate is 40 %"
+    poses = [1, 1, 2, 2, 1]
+    assert exploration_ratio(poses)[4] == pytest.approx(0.4)
+    assert exploration_ratio(poses).tolist() == pytest.approx([1.0, 0.5, 2 / 3, 0.5, 0.4])
+
+
+def test_exploration_curve_averages_running_episodes_only():
+    a = ep(0, True, 2, 2, poses=[1, 2])  # ratios 1, 1
+    b = ep(1, False, 4, 5, done=False, poses=[1, 1, 1, 1])  # ratios 1, .5, 1/3, .25
+    mean, count = exploration_curve([a, b], horizon=5)
+    assert count.tolist() == [2, 2, 1, 1, 0]
+    assert mean[:4].tolist() == pytest.approx([1.0, 0.75, 1 / 3, 0.25])
+    assert math.isnan(mean[4])
+
+
+def test_summarize_per_room():
+    results = [ep(0, True, 4, 4), ep(1, False, 200, 9, done=False, room="living_room")]
+    s = summarize(results)
+    assert set(s) == {"overall", "kitchen", "living_room"}
+    assert s["kitchen"]["success"] == 1.0 and s["living_room"]["success"] == 0.0
+    assert s["overall"]["success"] == 0.5
+
+
+def test_bootstrap_interval_contains_mean_and_shrinks_with_n():
+    rng = np.random.default_rng(1)
+    small = (rng.random(100) < 0.4).astype(float)
+    large = (rng.random(2000) < 0.4).astype(float)
+    lo, hi = bootstrap_ci(small)
+    assert lo < small.mean() < hi
+    lo2, hi2 = bootstrap_ci(large)
+    assert hi2 - lo2 < hi - lo
+    # Binomial standard error: the 95 % half-width is about 1.96 * sqrt(p(1-p)/n).
+    assert (hi2 - lo2) / 2 == pytest.approx(1.96 * math.sqrt(0.4 * 0.6 / 2000), rel=0.15)
+    # Seeded: identical intervals on every call.
+    assert bootstrap_ci(small) == (lo, hi)
+
+
+def test_seed_estimates_mean_std_over_seeds():
+    seed_a = [ep(i, i % 2 == 0, 4, 4) for i in range(10)]  # SR 0.5
+    seed_b = [ep(i, i % 5 == 0, 4, 4) for i in range(10)]  # SR 0.2
+    est = seed_estimates([seed_a, seed_b])
+    assert est["success"].mean == pytest.approx(0.35)
+    assert est["success"].std == pytest.approx(mean_std([0.5, 0.2])[1])
+    assert est["success"].seeds == 2 and est["success"].episodes == 10
+    assert est["success"].ci_low <= 0.35 <= est["success"].ci_high
+    with pytest.raises(ValueError):
+        seed_estimates([seed_a, seed_b[:5]])
+
+
+def test_report_cells_and_table():
+    results = [ep(i, i < 3, 8, 4) for i in range(4)]
+    record = model_record("cvmeta", [results])
+    cell = format_estimate("success", record["estimates"]["success"])
+    assert cell.startswith("75.0 [")  # one seed: no ±
+    table = model_table([record])
+    assert "| cvmeta | 75.0" in table and "SR L≥5" in table

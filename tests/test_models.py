@@ -1,0 +1,253 @@
+"""Model shapes, reference parameter counts, batching, functional evaluation and the context vector."""
+
+import math
+
+import pytest
+import torch
+from torch.func import functional_call
+
+from mapless.errors import UnknownNameError
+from mapless.knowledge import normalize_adjacency, synthetic_knowledge
+from mapless.models import ModelConfig, build_model, context_vector, count_parameters, model_names
+from mapless.models.synthetic import synthetic_observations
+
+ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta"]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return synthetic_knowledge(6, 300, seed=0)
+
+
+def test_every_model_of_the_comparison_is_registered():
+    assert model_names() == ALL
+    with pytest.raises(UnknownNameError, match="mjolnir_o"):
+        build_model("mjolnir-o")
+
+
+# Reference numbers: docs/reference-implementations.md §3 (instantiated originals) and
+# baselines-gve-spatt.md §1.3 (SpAtt, arithmetic). (trainable, state-dict total)
+REFERENCE_COUNTS = {
+    "a3c": (7_577_491, 7_577_491),
+    "savn": (8_115_539, 8_115_539),
+    "spatt": (7_566_070, 7_566_070),
+    "mjolnir_o": (3_558_001, 3_588_301),
+    "mjolnir_r": (9_018_253, 9_561_553),
+}
+REFERENCE_SHAPES = {
+    "a3c": {
+        "conv1.weight": (64, 512, 1, 1),
+        "pointwise.weight": (64, 138, 1, 1),
+        "lstm.weight_ih": (2048, 3136),
+        "action_predict_linear.weight": (6, 6272),
+        "embed_glove.weight": (64, 300),
+    },
+    "savn": {
+        "ll_tc.ll_temporal_block0.ll_conv1.weight": (10, 6, 2),
+        "ll_tc.ll_temporal_block0.ll_conv2.weight": (10, 10, 2),
+        "ll_tc.ll_temporal_block1.ll_conv1.weight": (1, 10, 2),
+        "ll_tc.ll_temporal_block1.ll_conv2.weight": (1, 1, 2),
+        "ll_key.weight": (518, 518),
+    },
+    "mjolnir_o": {
+        "A": (101, 101),
+        "all_glove": (101, 300),
+        "lstm.weight_ih": (2048, 1027),
+        "W0.weight": (401, 401),
+        "W2.weight": (5, 401),
+        "W3.weight": (1, 10),
+        "final_mapping.weight": (512, 101),
+        "action_predict_linear.weight": (6, 2054),
+    },
+    "mjolnir_r": {"lstm.weight_ih": (2048, 3648), "resnet18.1.weight": (1000, 512)},
+    "spatt": {
+        "embed_state.weight": (64, 512, 1),
+        "memory_alpha.weight": (3, 512, 1),
+        "lstm.weight_ih": (2048, 3136),
+    },
+}
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCE_COUNTS))
+def test_reference_sized_models_reproduce_reference_counts_and_keys(name):
+    model = build_model(name, feature_channels=512, reference_extras=True)
+    assert count_parameters(model) == REFERENCE_COUNTS[name]
+    state = model.state_dict()
+    for key, shape in REFERENCE_SHAPES[name].items():
+        assert tuple(state[key].shape) == shape, key
+    # Without the dead modules only the documented ones go (docs/model.md).
+    lean = build_model(name, feature_channels=512)
+    dead = {
+        "a3c": 37_638,
+        "savn": 37_638 + 2 * 268_842 + 213,
+        "spatt": 213,
+        "mjolnir_o": 12_330,
+        "mjolnir_r": 43_782,
+    }[name]
+    assert count_parameters(lean)[0] == REFERENCE_COUNTS[name][0] - dead
+
+
+def test_scene_priors_and_gve_sizes():
+    sp = build_model("sp", feature_channels=512)
+    assert tuple(sp.lstm.weight_ih.shape) == (2048, 3648)
+    assert tuple(sp.graph.W0.weight.shape) == (1024, 1024)
+    gve = build_model("gve", feature_channels=512)
+    assert tuple(gve.lstm.weight_ih.shape) == (2048, 3136)
+    assert tuple(gve.critic_linear.weight.shape) == (1, 1024)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_real_size_forward_shapes(name):
+    model = build_model(name).eval()
+    knowledge = model.knowledge
+    obs = synthetic_observations(2, knowledge)
+    out = model(obs, model.initial_state(2), torch.zeros(2, 6))
+    assert out.logits.shape == (2, 6) and out.value.shape == (2, 1)
+    assert out.hidden[0].shape == (2, 512) and out.hidden[1].shape == (2, 512)
+    assert torch.isfinite(out.logits).all() and torch.isfinite(out.value).all()
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_batched_forward_equals_per_episode_forward(name, tiny):
+    torch.manual_seed(0)
+    model = build_model(name, knowledge=tiny, hidden_size=24).eval()
+    gen = torch.Generator().manual_seed(1)
+    obs = synthetic_observations(3, tiny, generator=gen)
+    hidden = (torch.randn(3, 24, generator=gen), torch.randn(3, 24, generator=gen))
+    policy = torch.softmax(torch.randn(3, 6, generator=gen), -1)
+    batched = model(obs, hidden, policy)
+    for b in range(3):
+        single = model(
+            {k: v[b : b + 1] for k, v in obs.items()},
+            (hidden[0][b : b + 1], hidden[1][b : b + 1]),
+            policy[b : b + 1],
+        )
+        assert torch.allclose(batched.logits[b], single.logits[0], atol=1e-5)
+        assert torch.allclose(batched.value[b], single.value[0], atol=1e-5)
+        assert torch.allclose(batched.hidden[0][b], single.hidden[0][0], atol=1e-5)
+
+
+@pytest.mark.parametrize("name", [n for n in ALL if n != "random"])
+def test_functional_call_uses_the_given_parameters(name, tiny):
+    torch.manual_seed(0)
+    model = build_model(name, knowledge=tiny, hidden_size=24).eval()
+    obs = synthetic_observations(2, tiny, generator=torch.Generator().manual_seed(2))
+    args = (obs, model.initial_state(2), torch.zeros(2, 6))
+    params = dict(model.named_parameters())
+    same = functional_call(model, params, args)
+    assert torch.equal(same.logits, model(*args).logits)
+    shifted = {n: p + 0.1 for n, p in params.items()}
+    assert not torch.allclose(functional_call(model, shifted, args).logits, same.logits)
+
+
+def test_random_model_is_uniform_and_stateless(tiny):
+    model = build_model("random", knowledge=tiny)
+    hidden = (torch.ones(2, 512), torch.zeros(2, 512))
+    out = model(synthetic_observations(2, tiny), hidden, torch.zeros(2, 6))
+    assert torch.allclose(torch.softmax(out.logits, -1), torch.full((2, 6), 1 / 6))
+    assert out.hidden is hidden and count_parameters(model) == (0, 0)
+
+
+def test_context_vector_of_a_hand_built_pose():
+    # Category 0: two instances in view, boxes (30, 60, 90, 120) and (60, 90, 150, 210) px of the 300 px
+    # frame -> union box (30, 60, 150, 210): centre (90, 135) / 300, area 120 * 150 / 300². Category 1: one
+    # box (0, 0, 300, 30). Category 2: not in view.
+    context = torch.tensor(
+        [
+            [
+                [1.0, 90 / 300, 135 / 300, 120 * 150 / 300**2],
+                [1.0, 150 / 300, 15 / 300, 300 * 30 / 300**2],
+                [0.0, 0.0, 0.0, 0.0],
+            ]
+        ]
+    )
+    glove = torch.tensor([[3.0, 0.0, 4.0], [1.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
+    target = torch.tensor([[1.0, 0.0, 0.0]])
+    cv = context_vector({"context": context, "target_embedding": target}, glove)
+    expected = torch.tensor(
+        [[[1.0, 0.3, 0.45, 0.2, 3 / 5], [1.0, 0.5, 0.05, 0.1, 1 / math.sqrt(2)], [0.0, 0.0, 0.0, 0.0, 0.0]]]
+    )
+    assert torch.allclose(cv, expected, atol=1e-7)
+
+
+def test_cs_column_uses_the_packaged_glove_table():
+    model = build_model("mjolnir_o")
+    names = model.knowledge.category_names
+    glove = model.all_glove
+    target = glove[names.index("Television")].unsqueeze(0)
+    cs = context_vector({"context": torch.zeros(1, len(names), 4), "target_embedding": target}, glove)[
+        0, :, 4
+    ]
+    sofa = names.index("Sofa")
+    by_hand = float(glove[sofa] @ target[0] / (glove[sofa].norm() * target[0].norm()))
+    assert cs[names.index("Television")].item() == pytest.approx(1.0, abs=1e-6)
+    assert cs[sofa].item() == pytest.approx(by_hand, abs=1e-6)
+
+
+def test_graphs_per_model():
+    cv = build_model("cvmeta")
+    assert torch.allclose(cv.A, torch.as_tensor(normalize_adjacency(cv.knowledge.graph("hierarchical"))))
+    assert cv.A.requires_grad and not cv.all_glove.requires_grad
+    mj = build_model("mjolnir_o")
+    assert torch.allclose(mj.A, torch.as_tensor(normalize_adjacency(mj.knowledge.graph("vg"))))
+    ablated = build_model("cvmeta", hierarchy_rooms=("kitchen", "bedroom", "bathroom"))
+    assert not torch.allclose(ablated.A, cv.A)
+    assert build_model(ModelConfig(name="cvmeta", graph="vg")).A.shape == (101, 101)
+
+
+def test_inner_step_skips_only_parameters_the_learned_loss_cannot_reach(tiny):
+    for name in ["savn", "gve", "spatt", "cvmeta"]:
+        torch.manual_seed(0)
+        model = build_model(name, knowledge=tiny, hidden_size=16, interaction_steps=2).eval()
+        savn_rule = [n for n, p in model.named_parameters() if p.requires_grad and "ll" not in n]
+        skipped = sorted(set(savn_rule) - set(model.inner_parameter_names()))
+        assert all(n.startswith(("critic_linear", "gve.")) for n in skipped), (name, skipped)
+        obs = synthetic_observations(1, tiny)
+        hidden, policy, rows = model.initial_state(1), torch.zeros(1, 6), []
+        for _ in range(2):
+            out = model(obs, hidden, policy)
+            hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+            rows.append(torch.cat([hidden[0], policy], -1))
+        params = dict(model.named_parameters())
+        grads = torch.autograd.grad(
+            model.learned_loss(torch.stack(rows, 1)).sum(), [params[n] for n in skipped], allow_unused=True
+        )
+        assert all(g is None for g in grads)
+
+
+def test_gve_graph_enters_the_critic_only(tiny):
+    torch.manual_seed(0)
+    model = build_model("gve", knowledge=tiny, hidden_size=16).eval()
+    obs = synthetic_observations(2, tiny)
+    args = (obs, model.initial_state(2), torch.zeros(2, 6))
+    base = model(*args)
+    params = {n: (p + 0.5 if n.startswith("gve.") else p) for n, p in model.named_parameters()}
+    moved = functional_call(model, params, args)
+    assert torch.equal(moved.logits, base.logits) and not torch.allclose(moved.value, base.value)
+
+
+def test_spatt_attention_is_uniform_at_initialisation(tiny):
+    model = build_model("spatt", knowledge=tiny, hidden_size=16).eval()
+    obs = synthetic_observations(2, tiny)
+    _, p = model.attention(obs, model.initial_state(2), torch.zeros(2, 6))
+    assert torch.allclose(p, torch.full((2, 49), 1 / 49))
+
+
+def test_inner_learning_rates():
+    assert build_model("savn", feature_channels=8).inner_lr == 1e-4
+    assert build_model("spatt", feature_channels=8).inner_lr == 0.01
+    assert build_model("cvmeta").inner_lr == 1e-3
+    assert build_model("cvmeta", inner_lr=0.5).inner_lr == 0.5
+    with pytest.raises(TypeError):
+        _ = build_model("a3c", feature_channels=8).inner_lr
+
+
+def test_cli_lists_models_with_reference_counts(capsys):
+    from mapless.cli import main
+
+    assert main(["models", "list", "--reference"]) == 0
+    out = capsys.readouterr().out
+    lines = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert list(lines) == ALL
+    assert "7,577,491" in lines["a3c"] and "8,115,539" in lines["savn"]
+    assert "3,558,001" in lines["mjolnir_o"] and "3,588,301" in lines["mjolnir_o"]

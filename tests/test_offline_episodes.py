@@ -1,0 +1,263 @@
+"""Published episode pickles: reading without the original classes, mapping, writing."""
+
+from __future__ import annotations
+
+import pickle
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mapless.episodes import Episode
+from mapless.offline import OfflineFormatError, import_episode_file, read_episode_file
+from mapless.offline.episodes import RawEpisode, map_episodes, write_episode_file
+from mapless.sim.scene_data import pose_key
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ithor"
+SAMPLE = SHARED / "episodes_format_sample" / "bathroom_val_22.pkl"
+
+
+@pytest.fixture(scope="module")
+def sample() -> Path:
+    if not SAMPLE.is_file():
+        pytest.fail(f"shared data missing: {SAMPLE} (CI checks ../shared out beside the repository)")
+    return SAMPLE
+
+
+@pytest.fixture(scope="module")
+def floorplan425():
+    from mapless.scenes import load_scene
+    from mapless.sim.build import build_scene_data
+    from mapless.sim.config import SimConfig
+
+    return build_scene_data(load_scene("FloorPlan425"), SimConfig())
+
+
+def test_hoz_sample_maps_onto_built_in_scenes(sample):
+    episodes, bad = read_episode_file(sample)
+    assert len(episodes) == 1000 and not bad
+    first = episodes[0]
+    assert (first.scene, first.target_type, first.start) == (
+        "FloorPlan427",
+        "GarbageCan",
+        (-1.5, 1.0, 180, 30),
+    )
+    assert first.embedding.shape == (60, 1)
+    report = import_episode_file(sample)
+    assert report.total == 1000 and report.mapped + len(report.skipped) == 1000
+    assert report.mapped >= 990  # all 22 target ids have a same-type object within 0.3 m
+    assert report.exact_ids > 0 and report.nearest_ids > 0
+    assert "episodes mapped" in report.summary()
+    for index, reason in report.skipped:
+        assert isinstance(index, int) and reason
+    ep = report.episodes[0]
+    assert (ep.scene, ep.target, ep.episode_id) == ("FloorPlan427", "GarbageCan", "import/bathroom/0000")
+    assert ep.start == (-1.5, 1.0, 180, 30) and ep.optimal_length == -1  # no SceneData given
+    from mapless.scenes import load_scene
+
+    assert all(t in load_scene(ep.scene).object_index for t in ep.target_ids)
+
+
+def test_unmappable_episodes_are_listed():
+    raw = [
+        RawEpisode(0, "FloorPlan999", "Mug", ("Mug|+00.00|+00.00|+00.00",), (0.0, 0.0, 0, 0)),
+        RawEpisode(1, "FloorPlan401", "Mug", ("Mug|+00.00|+00.00|+00.00",), (0.0, 0.0, 0, 0)),
+        RawEpisode(2, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (0.0, 0.0, 0, 0)),
+        RawEpisode(3, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (0.0, 0.0, 10, 0)),
+    ]
+    report = map_episodes(raw)
+    reasons = dict(report.skipped)
+    assert report.mapped == 0 and len(reasons) == 4
+    assert reasons[0].startswith("unknown scene")
+    assert reasons[1].startswith("no object of that type in the scene")
+    assert reasons[2].startswith("no object of that type nearby")
+
+
+class ThorAgentState:
+    """What SAVN's class looks like to pickle: plain attributes."""
+
+    def __init__(self, x, y, z, rotation, horizon):
+        self.x, self.y, self.z, self.rotation, self.horizon = x, y, z, rotation, horizon
+
+
+@pytest.fixture
+def savn_module(monkeypatch):
+    """Make ``datasets.offline_controller_with_small_rotation.ThorAgentState`` importable."""
+    package = types.ModuleType("datasets")
+    module = types.ModuleType("datasets.offline_controller_with_small_rotation")
+    ThorAgentState.__module__ = module.__name__
+    module.ThorAgentState = ThorAgentState
+    package.offline_controller_with_small_rotation = module
+    monkeypatch.setitem(sys.modules, "datasets", package)
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    return module
+
+
+def test_reads_savn_pickle_without_its_classes(tmp_path, savn_module):
+    glove = torch.arange(300, dtype=torch.float32)
+    entries = [
+        {
+            "scene": "FloorPlan28_physics",
+            "goal_object_type": "Box",
+            "task_data": ["Box|-02.27|+00.00|-03.55"],
+            "state": ThorAgentState(-1.25, 0.91, 1.75, 225, 0),
+            "glove_embedding": glove,
+        }
+    ]
+    path = tmp_path / "kitchen_test.pkl"
+    path.write_bytes(pickle.dumps(entries, protocol=2))
+    for name in ("datasets", savn_module.__name__):
+        sys.modules.pop(name)  # the reader must not need the class
+    episodes, bad = read_episode_file(path)
+    assert not bad
+    assert episodes[0].start == (-1.25, 1.75, 225, 0) and episodes[0].scene == "FloorPlan28_physics"
+    np.testing.assert_array_equal(episodes[0].embedding, glove.numpy())
+
+
+def test_written_pickles_load_in_the_originals(tmp_path, savn_module):
+    episodes = [
+        Episode("FloorPlan28", "Toaster", (-1.25, 1.75, 225, 0), 7, ("Toaster|+01.00|+00.90|-02.00",)),
+        Episode("FloorPlan423", "Towel", (0.5, 0.25, 0, 30)),
+    ]
+    glove = {"Toaster": np.full(300, 0.5), "Towel": np.full(300, -0.25)}
+    for fmt in ("savn", "mjolnir"):
+        path = tmp_path / f"{fmt}.pkl"
+        assert write_episode_file(episodes, path, fmt, embeddings=glove) == 2
+        loaded = pickle.loads(path.read_bytes())  # what the original code does
+        state = loaded[0]["state"]
+        assert isinstance(state, savn_module.ThorAgentState)
+        assert (state.x, state.z, state.rotation, state.horizon) == (-1.25, 1.75, 225, 0)
+        assert loaded[0]["task_data"] == ["Toaster|+01.00|+00.90|-02.00"]
+        assert loaded[1]["task_data"] and all(t.startswith("Towel|") for t in loaded[1]["task_data"])
+        assert loaded[0]["goal_object_type"] == "Toaster"
+        if fmt == "savn":
+            assert [e["scene"] for e in loaded] == ["FloorPlan28_physics", "FloorPlan423"]
+            assert isinstance(loaded[0]["glove_embedding"], torch.Tensor)
+            assert "room" not in loaded[0]
+        else:
+            assert [e["scene"] for e in loaded] == ["FloorPlan28", "FloorPlan423"]
+            assert [e["room"] for e in loaded] == ["Kitchen", "Bathroom"]
+        np.testing.assert_allclose(np.asarray(loaded[1]["glove_embedding"]), -0.25)
+        back, bad = read_episode_file(path)
+        assert not bad and [b.start for b in back] == [(-1.25, 1.75, 225, 0), (0.5, 0.25, 0, 30)]
+
+
+def test_missing_embedding_is_an_error(tmp_path):
+    episode = Episode("FloorPlan28", "Toaster", (0.0, 0.0, 0, 0))
+    with pytest.raises(Exception, match="no embedding for target type 'Toaster'"):
+        write_episode_file([episode], tmp_path / "x.pkl", embeddings={})
+
+
+class _Exploit:
+    def __reduce__(self):
+        return (Path("/tmp/mapless-should-not-exist").touch, ())
+
+
+def test_unpickler_runs_no_code(tmp_path):
+    path = tmp_path / "evil.pkl"
+    path.write_bytes(
+        pickle.dumps(
+            [
+                {
+                    "scene": "FloorPlan1",
+                    "goal_object_type": "Mug",
+                    "task_data": [],
+                    "state": "0.00|0.00|0|0",
+                    "glove_embedding": _Exploit(),
+                }
+            ]
+        )
+    )
+    episodes, _ = read_episode_file(path)
+    assert not Path("/tmp/mapless-should-not-exist").exists()
+    assert episodes[0].embedding is None or episodes[0].embedding.dtype != object
+
+
+def test_bad_episode_files(tmp_path):
+    with pytest.raises(OfflineFormatError, match="no such episode file"):
+        read_episode_file(tmp_path / "missing.pkl")
+    garbage = tmp_path / "garbage.pkl"
+    garbage.write_bytes(b"\x80\x04not a pickle")
+    with pytest.raises(OfflineFormatError, match=r"garbage\.pkl: not a readable episode pickle"):
+        read_episode_file(garbage)
+    wrong = tmp_path / "wrong.pkl"
+    wrong.write_bytes(pickle.dumps({"scene": "FloorPlan1"}))
+    with pytest.raises(OfflineFormatError, match="expected a list of episode dicts"):
+        read_episode_file(wrong)
+    partial = tmp_path / "partial.pkl"
+    partial.write_bytes(
+        pickle.dumps(
+            [
+                {"scene": "FloorPlan1"},
+                {"scene": "FloorPlan1", "goal_object_type": "Mug", "task_data": [], "state": "bad"},
+            ]
+        )
+    )
+    episodes, bad = read_episode_file(partial)
+    assert not episodes and [i for i, _ in bad] == [0, 1]
+    assert "no goal_object_type, task_data, state" in bad[0][1]
+
+
+def test_mapping_against_built_scene_data(sample, floorplan425):
+    episodes, _ = read_episode_file(sample)
+    episodes = [e for e in episodes if e.scene == "FloorPlan425"][:40]
+    data = floorplan425
+    report = map_episodes(episodes, scene_data=lambda name: data)
+    assert report.total == 40 and report.mapped + len(report.skipped) == 40 and report.mapped >= 30
+    for episode in report.episodes:
+        start = data.pose_index[pose_key(*episode.start)]
+        goal = data.goal_mask_for_instances(
+            np.array([data.instance_ids.index(i) for i in episode.target_ids])
+        )
+        assert episode.optimal_length == data.distances_to(goal)[start] + 1 >= 1
+    for _, reason in report.skipped:
+        assert reason.split(":")[0] in {
+            "target not reachable from the start",
+            "start pose not reachable",
+            "no object of that type nearby",
+        }
+
+
+def test_cli_import_then_export(sample, floorplan425, tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from mapless.cli import interop
+    from mapless.episodes import evalsets
+    from mapless.sim.library import SceneLibrary
+
+    entries = [e for e in pickle.loads(sample.read_bytes()) if e["scene"] == "FloorPlan425"][:20]
+    entries.append(
+        {
+            "scene": "FloorPlan9999",
+            "goal_object_type": "Sink",
+            "task_data": ["Sink|+0|+0|+0"],
+            "state": "0.00|0.00|0|0",
+            "glove_embedding": None,
+        }
+    )
+    small = tmp_path / "bathroom_small.pkl"
+    small.write_bytes(pickle.dumps(entries))
+    data = floorplan425
+    monkeypatch.setattr(
+        SceneLibrary, "builtin", classmethod(lambda cls, config=None, cache_dir=None: cls(lambda n: data))
+    )
+    parser = argparse.ArgumentParser()
+    interop.register(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "imported.json.gz"
+    args = parser.parse_args(["interop", "episodes-import", str(small), "--out", str(out), "--show-skipped"])
+    assert args.func(args) == 0
+    printed = capsys.readouterr().out
+    assert "episodes mapped" in printed and "#20: unknown scene" in printed
+    episodes, header = evalsets.load(out)
+    assert header["split"] == "val" and 0 < len(episodes) <= 20
+    assert all(e.optimal_length >= 1 and e.target_ids for e in episodes)
+    pkl = tmp_path / "bathroom_savn.pkl"
+    args = parser.parse_args(["interop", "episodes-export", str(out), "--format", "savn", "--out", str(pkl)])
+    assert args.func(args) == 0
+    back, bad = read_episode_file(pkl)
+    assert not bad and len(back) == len(episodes)
+    assert [b.target_ids for b in back] == [e.target_ids for e in episodes]
+    assert back[0].embedding.shape == (300,)

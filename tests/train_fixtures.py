@@ -1,0 +1,38 @@
+"""Small, fast training setups: hand-made kitchen scenes and tiny model configs (no scene building)."""
+
+from __future__ import annotations
+
+from scene_fixtures import grid_scene
+
+from mapless.config import apply_overrides, from_dict
+from mapless.scenes.catalogue import room_type_of
+from mapless.sim.library import SceneLibrary
+from mapless.train.config import TrainConfig
+
+SCENES = "FloorPlan1,FloorPlan2"
+#: A 3x3 grid so that episodes last a few steps and targets are sometimes out of view.
+POSITIONS = tuple((0.25 * i, 0.25 * j) for i in range(3) for j in range(3))
+
+
+def _scene(name: str):
+    return grid_scene(POSITIONS, scene=name, room_type=room_type_of(name), seed=int(name[9:]), blocked=())
+
+
+def fixture_library() -> SceneLibrary:
+    """Module-level (picklable) factory: spawned async workers build the same scenes."""
+    return SceneLibrary(_scene)
+
+
+def tiny_config(model: str = "a3c", *overrides: str) -> TrainConfig:
+    base = {
+        "model": {"name": model, "hidden_size": 16, "fusion_channels": 2, "dropout": 0.0},
+        "env": {"scenes": SCENES, "max_steps": 8},
+        "batch_size": 4,
+        "workers": 2,
+        "episodes": 8,
+        "checkpoint_every": 4,
+        "log_every": 4,
+        "threads": 1,
+        "progress": False,
+    }
+    return from_dict(TrainConfig, apply_overrides(base, list(overrides)))
