@@ -96,7 +96,7 @@ class NavEnv(gym.Env):
         self.pose = self.library.pose_of(episode.scene, episode.start)
         self._goal, distances = self._goal_and_distances(episode)
         self._target_embedding = self.targets.embedding(episode.target)
-        self._target_index = np.int64(self.targets.index(episode.target))
+        self._target_index = np.array(self.targets.index(episode.target), dtype=np.int64)
         self._parent_weights = self.targets.parent_weights(self.data.room_type, episode.target)
         self._seen_parents = np.zeros_like(self._parent_weights, dtype=bool)
         self.max_steps = self.fixed_max_steps or max_steps_for(self.data.room_type, self.mode)

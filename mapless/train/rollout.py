@@ -71,7 +71,10 @@ def to_tensors(obs: dict[str, np.ndarray], device: torch.device, batch: bool = T
     """Numpy observations -> tensors on ``device`` (``batch=False`` adds the batch dimension)."""
     out = {}
     for key, value in obs.items():
-        tensor = torch.as_tensor(np.asarray(value))
+        array = np.asarray(value)
+        if not array.flags.writeable:  # NavEnv hands out read-only views of cached arrays
+            array = array.copy()
+        tensor = torch.from_numpy(array)
         out[key] = (tensor if batch else tensor.unsqueeze(0)).to(device, non_blocking=True)
     return out
 

@@ -1,0 +1,160 @@
+"""The gymnasium and batched environments on a real floor plan: rewards, termination, BFS lengths,
+parent reward, equivalence of the two forms, and bad-input errors."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from mapless.episodes import Episode
+from mapless.errors import MaplessError
+from mapless.sim.env import ENV_ID, NavEnv
+from mapless.sim.library import SceneLibrary
+from mapless.sim.scene_data import DONE
+from mapless.sim.task import RewardConfig
+from mapless.sim.vector import BatchedNavEnv
+
+SCENE = "FloorPlan25"  # a small kitchen (47 grid points)
+
+
+@pytest.fixture(scope="module")
+def library() -> SceneLibrary:
+    return SceneLibrary.builtin()
+
+
+def start_of(data, pose: int) -> tuple[float, float, int, int]:
+    return float(data.x[pose]), float(data.z[pose]), int(data.yaw[pose]), int(data.horizon[pose])
+
+
+def far_episode(library, target="Toaster") -> tuple[Episode, int]:
+    data = library[SCENE]
+    distances = data.target_distances(target)
+    pose = int(np.argmax(np.where(data.horizon == 0, distances, -1)))
+    return Episode(SCENE, target, start_of(data, pose)), pose
+
+
+def optimal_actions(data, pose: int, target: str) -> list[int]:
+    """Greedy descent of the BFS distance field, then Done."""
+    distances = data.target_distances(target)
+    actions = []
+    while distances[pose] > 0:
+        action = int(np.argmin([distances[q] if distances[q] >= 0 else 1 << 30 for q in data.successors[pose]]))
+        pose = int(data.successors[pose, action])
+        actions.append(action)
+    return [*actions, DONE]
+
+
+def test_following_the_bfs_path_succeeds_in_exactly_the_optimal_length(library):
+    episode, pose = far_episode(library)
+    env = NavEnv(library, [episode])
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    actions = optimal_actions(library[SCENE], pose, "Toaster")
+    assert info["optimal_length"] == len(actions) >= 5
+    total = 0.0
+    for i, action in enumerate(actions):
+        obs, reward, terminated, truncated, info = env.step(action)
+        total += reward
+        assert terminated == (i == len(actions) - 1) and not truncated
+    assert info["success"]
+    assert total == pytest.approx(5.0 - 0.01 * (len(actions) - 1))
+    assert len(info["visited"]) == len(actions)  # start + every movement
+
+
+def test_done_away_from_the_target_fails_and_step_limit_truncates(library):
+    episode, _ = far_episode(library)
+    env = NavEnv(library, [episode])
+    env.reset(seed=0)
+    _, reward, terminated, truncated, info = env.step(DONE)
+    assert terminated and not truncated and not info["success"] and reward == pytest.approx(-0.01)
+    env.reset()
+    for step in range(30):
+        _, _, terminated, truncated, _ = env.step(1)  # rotate in place
+        assert not terminated and truncated == (step == 29)
+    evaluation = NavEnv(library, [episode], mode="eval")
+    evaluation.reset()
+    assert evaluation.max_steps == 100  # kitchens; 200 in living rooms
+
+
+def test_failed_moves_leave_the_pose_unchanged(library):
+    data = library[SCENE]
+    blocked = np.flatnonzero(data.successors[:, 0] == np.arange(data.n_poses))
+    pose = int(blocked[0])
+    env = NavEnv(library, [Episode(SCENE, "Toaster", start_of(data, pose))])
+    env.reset()
+    _, _, _, _, info = env.step(0)
+    assert info["failed_action"] and info["pose"] == pose
+
+
+def test_gymnasium_make_and_registered_id(library):
+    episode, _ = far_episode(library)
+    env = gym.make(ENV_ID, library=library, episodes=[episode])
+    obs, _ = env.reset(seed=1)
+    assert obs["context"].shape == (101, 4) and obs["features"].shape == (104, 7, 7)
+    assert obs["target_index"] == 100 - 0 or obs["target_index"] >= 0
+    env.close()
+
+
+def test_batched_env_matches_the_single_env(library):
+    data = library[SCENE]
+    rng = np.random.default_rng(3)
+    starts = rng.choice(np.flatnonzero(data.horizon == 0), size=8, replace=False)
+    targets = ["Toaster", "Mug", "Apple", "Bread"]
+    episodes = [Episode(SCENE, targets[i % 4], start_of(data, int(p))) for i, p in enumerate(starts)]
+    actions = rng.integers(0, 6, size=(30, 8))
+    rewards = RewardConfig(parent_reward=True)
+    batched = BatchedNavEnv(library, [SCENE], 8, rewards=rewards)
+    batched.reset(np.arange(8), episodes)
+    for slot, episode in enumerate(episodes):
+        env = NavEnv(library, [episode], rewards=rewards)
+        obs, info = env.reset()
+        assert batched.optimal_length[slot] == info["optimal_length"]
+        np.testing.assert_array_equal(batched.observe()["context"][slot], obs["context"])
+    singles = [NavEnv(library, [e], rewards=rewards) for e in episodes]
+    for env in singles:
+        env.reset()
+    finished = np.zeros(8, bool)
+    for row in actions:
+        step = batched.step(row)
+        obs = batched.observe(("context", "features"))
+        for slot, env in enumerate(singles):
+            if finished[slot]:
+                assert not step.active[slot]
+                continue
+            single_obs, reward, terminated, truncated, info = env.step(row[slot])
+            assert step.reward[slot] == pytest.approx(reward)
+            assert step.success[slot] == info["success"]
+            assert step.terminated[slot] == terminated and step.truncated[slot] == truncated
+            np.testing.assert_allclose(obs["features"][slot], single_obs["features"])
+            finished[slot] = terminated or truncated
+
+
+def test_parent_reward_pays_once_per_parent_per_episode(library):
+    data = library[SCENE]
+    probe = NavEnv(library, [far_episode(library)[0]], rewards=RewardConfig(parent_reward=True))
+    probe.reset()
+    weights = probe._parent_weights
+    is_parent = weights > 0
+    assert is_parent.any()  # the Toaster has parents in kitchens
+    in_view = data.context[:, :, 0] > 0
+    turn_right = data.successors[:, 2]
+    # A pose that sees no parent, whose right turn brings one into view.
+    candidates = np.flatnonzero(~(in_view & is_parent).any(1) & (in_view[turn_right] & is_parent).any(1))
+    pose = int(candidates[0])
+    env = NavEnv(library, [Episode(SCENE, "Toaster", start_of(data, pose))], rewards=RewardConfig(parent_reward=True))
+    env.reset()
+    _, reward, _, _, _ = env.step(2)
+    assert reward == pytest.approx(weights[in_view[turn_right[pose]] & is_parent].max())
+    env.step(1)  # back: nothing new in view
+    _, again, _, _, _ = env.step(2)
+    newly_seen = in_view[turn_right[pose]] & is_parent
+    assert again == pytest.approx(-0.01) if newly_seen.sum() == 1 else again <= reward
+    env.reset()  # the seen set is per episode: the bonus is paid again
+    _, reward_again, _, _, _ = env.step(2)
+    assert reward_again == pytest.approx(reward)
+
+
+def test_off_grid_start_names_the_nearest_valid_pose(library):
+    with pytest.raises(MaplessError, match="nearest valid pose"):
+        library.pose_of(SCENE, (0.13, 0.02, 0, 0))
