@@ -113,7 +113,8 @@ def _check(args: argparse.Namespace) -> int:
     library = SceneLibrary.builtin(config, args.cache_dir)
     room_targets = targets(args.target_set)
     print(
-        f"{'scene':<14}{'poses':>7}{'positions':>10}  {'targets reachable':<20}{'sees object':>12}{'sees target':>12}"
+        f"{'scene':<14}{'poses':>7}{'positions':>10}  {'targets reachable':<20}{'sees object':>12}"
+        f"{'sees target':>12}{'geo/eucl':>10}"
     )
     for name in resolve_scenes(args.scenes):
         data = library[name]
@@ -126,9 +127,27 @@ def _check(args: argparse.Namespace) -> int:
         print(
             f"{name:<14}{data.n_poses:>7}{data.n_poses // (len(config.yaws) * len(config.horizons)):>10}  "
             f"{len(reachable)}/{len(wanted)} ({len(room_targets[data.room_type])} in set){'':<4}"
-            f"{sees_object.mean():>11.0%}{goal_any.mean():>12.0%}"
+            f"{sees_object.mean():>11.0%}{goal_any.mean():>12.0%}{_detour_ratio(data):>10.2f}"
         )
     return 0
+
+
+def _detour_ratio(data) -> float:
+    """Median ratio of grid geodesic to straight-line distance between connected positions."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    xz = np.round(np.stack([data.x, data.z], 1), 2)
+    positions, position_of = np.unique(xz, axis=0, return_inverse=True)
+    moves = data.successors[:, 0]
+    src, dst = position_of[np.arange(data.n_poses)], position_of[moves]
+    edges = np.unique(np.stack([src, dst], 1)[src != dst], axis=0)  # one edge per position pair
+    lengths = np.linalg.norm(positions[edges[:, 0]] - positions[edges[:, 1]], axis=1)
+    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(positions),) * 2).tocsr()
+    geodesic = shortest_path(graph, directed=True)
+    euclid = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    ok = np.isfinite(geodesic) & (euclid > 0)
+    return float(np.median(geodesic[ok] / euclid[ok])) if ok.any() else float("nan")
 
 
 def _targets(args: argparse.Namespace) -> int:
