@@ -11,12 +11,12 @@ class MaplessError(Exception):
 
 
 class UnknownNameError(MaplessError, KeyError):
-    def __init__(self, kind: str, name: str, valid: Iterable[str]):
+    def __init__(self, kind: str, name: str, valid: Iterable[str], summary: str | None = None):
         valid = list(valid)
         close = difflib.get_close_matches(str(name), valid, n=3)
         hint = f" Did you mean {', '.join(close)}?" if close else ""
-        shown = ", ".join(valid[:40]) + (" ..." if len(valid) > 40 else "")
-        super().__init__(f"unknown {kind} {name!r}.{hint} Valid {kind}s: {shown}")
+        shown = summary or ", ".join(valid[:60]) + (" ..." if len(valid) > 60 else "")
+        super().__init__(f"unknown {kind} {name!r}.{hint} Valid choices: {shown}")
         self.kind, self.name, self.valid = kind, name, valid
 
     def __str__(self) -> str:  # KeyError would quote the message

@@ -25,13 +25,13 @@ from mapless.train.rollout import (
     run_episode,
 )
 
-B = 4
+B = 3
 CPU = torch.device("cpu")
 
 
 def _setup(name: str, *overrides: str):
-    config = tiny_config(name, "model.interaction_steps=3", "model.max_inner_updates=2", "model.inner_lr=0.05",
-                         *overrides)
+    config = tiny_config(name, "env.max_steps=7", "model.interaction_steps=3", "model.max_inner_updates=2",
+                         "model.inner_lr=0.05", *overrides)
     torch.manual_seed(0)
     model = new_model(config)
     library = fixture_library()
@@ -49,7 +49,7 @@ def _grads(model) -> list[torch.Tensor]:
 
 @pytest.mark.parametrize(
     ("name", "first_order"),
-    [("a3c", False), ("mjolnir_o", False), ("savn", False), ("cvmeta", False), ("cvmeta", True)],
+    [("a3c", False), ("savn", False), ("cvmeta", True)],
 )
 def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: bool) -> None:
     config, model, library, episodes, noise = _setup(name, f"meta.first_order={first_order}")

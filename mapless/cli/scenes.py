@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mapless.cli.common import add_sim_arguments, parse_pose, sim_config_from
+from mapless.errors import UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
 from mapless.scenes.categories import targets
 from mapless.scenes.layout import load_scene
@@ -36,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     show = sub.add_parser("show", help="top-down map and egocentric view of a scene as a PNG")
     show.add_argument("scene")
-    show.add_argument("--pose", type=parse_pose, help="x,z,yaw,horizon (default: first reachable pose)")
+    show.add_argument("--pose", type=parse_pose, help="x,z,yaw,horizon; write --pose=-1.25,0.5,90,0 when x is negative (default: first reachable pose)")
     show.add_argument("--target", action="append", default=[], help="object type to highlight")
     show.add_argument("--out", type=Path, required=True)
     add_sim_arguments(show)
@@ -88,6 +89,10 @@ def _show(args: argparse.Namespace) -> int:
 
     config = sim_config_from(args)
     scene = load_scene(args.scene)
+    present = sorted({o.type for o in scene.objects})
+    for target in args.target:
+        if target not in present:
+            raise UnknownNameError(f"object type in {scene.name}", target, present)
     if args.pose is None:
         x, z = scene.reachable[0]
         pose = (float(x), float(z), 0, config.horizons[0])

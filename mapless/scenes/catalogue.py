@@ -19,6 +19,11 @@ SPLITS: dict[str, range] = {
     "all": range(1, 31),
 }
 _ROOM_OFFSET = {"kitchen": 0, "living_room": 200, "bedroom": 300, "bathroom": 400}
+_SCENE_SUMMARY = "FloorPlan1-30 (kitchens), FloorPlan201-230 (living rooms), FloorPlan301-330 (bedrooms), FloorPlan401-430 (bathrooms)"
+
+
+def _unknown_scene(scene: str) -> UnknownNameError:
+    return UnknownNameError("scene", scene, scene_names("all"), summary=_SCENE_SUMMARY)
 
 
 def scene_name(room_type: str, index: int) -> str:
@@ -27,14 +32,14 @@ def scene_name(room_type: str, index: int) -> str:
 
 def _number(scene: str) -> int:
     if not scene.startswith("FloorPlan"):
-        raise UnknownNameError("scene", scene, scene_names("all"))
+        raise _unknown_scene(scene)
     digits = scene[len("FloorPlan") :].removesuffix("_physics")
     if not digits.isdigit():
-        raise UnknownNameError("scene", scene, scene_names("all"))
+        raise _unknown_scene(scene)
     number = int(digits)
     hundreds, index = divmod(number, 100)
     if index < 1 or index > 30 or hundreds not in (0, 2, 3, 4):
-        raise UnknownNameError("scene", scene, scene_names("all"))
+        raise _unknown_scene(scene)
     return number
 
 

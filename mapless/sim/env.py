@@ -91,6 +91,7 @@ class NavEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         episode = self._select_episode(options)
+        self.library.check_target(episode.scene, episode.target)
         self._load_scene(episode.scene)
         self.episode = episode
         self.pose = self.library.pose_of(episode.scene, episode.start)

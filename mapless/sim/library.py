@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.errors import MaplessError
+from mapless.errors import MaplessError, UnknownNameError
 from mapless.sim.config import SimConfig
 from mapless.sim.scene_data import SceneData
 
@@ -31,6 +31,12 @@ class SceneLibrary:
         if scene not in self._scenes:
             self._scenes[scene] = self._loader(scene)
         return self._scenes[scene]
+
+    def check_target(self, scene: str, target: str) -> None:
+        """An episode's target must exist in its scene; the error lists the scene's object types."""
+        data = self[scene]
+        if target not in data.instance_types:
+            raise UnknownNameError(f"target type in {scene}", target, sorted(set(data.instance_types)))
 
     def pose_of(self, scene: str, start: tuple[float, float, int, int]) -> int:
         """Pose id of ``(x, z, yaw, horizon)``; an off-grid pose is an error naming the nearest one."""

@@ -105,6 +105,7 @@ class BatchedNavEnv:
             if episode.scene not in self.scene_offset:
                 raise KeyError(f"scene {episode.scene} was not given to this BatchedNavEnv")
             data = self.library[episode.scene]
+            self.library.check_target(episode.scene, episode.target)
             local = self.library.pose_of(episode.scene, episode.start)
             self.pose[slot] = local + self.scene_offset[episode.scene]
             self.goal[slot] = self._goal_id(episode)
