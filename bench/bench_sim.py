@@ -45,7 +45,9 @@ def bench_build(cache_dir: Path, all_scenes: bool) -> None:
         times.append(time.perf_counter() - start)
     per_scene = float(np.mean(times))
     print(f"build, one process: {', '.join(f'{n} {t:.1f}s' for n, t in zip(SAMPLE, times, strict=True))}")
-    report("build 120 scenes, projected on 2 cores", 120 * per_scene / 2 / 60, "min", 15, higher_is_better=False)
+    report(
+        "build 120 scenes, projected on 2 cores", 120 * per_scene / 2 / 60, "min", 15, higher_is_better=False
+    )
     if all_scenes:
         start = time.perf_counter()
         build_many(scene_names("all"), config, cache_dir, workers=2, progress=True)
@@ -68,7 +70,8 @@ def bench_steps(cache_dir: Path) -> None:
     data = library["FloorPlan201"]
     starts = np.flatnonzero(data.horizon == 0)
     episodes = [
-        Episode("FloorPlan201", "Laptop", (float(data.x[p]), float(data.z[p]), int(data.yaw[p]), 0)) for p in starts[:50]
+        Episode("FloorPlan201", "Laptop", (float(data.x[p]), float(data.z[p]), int(data.yaw[p]), 0))
+        for p in starts[:50]
     ]
     env = NavEnv(library, episodes)
     env.reset(seed=0)
@@ -78,7 +81,9 @@ def bench_steps(cache_dir: Path) -> None:
         _, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             env.reset()
-    report("single env steps/s (gymnasium API)", len(actions) / (time.perf_counter() - start), "steps/s", 100_000)
+    report(
+        "single env steps/s (gymnasium API)", len(actions) / (time.perf_counter() - start), "steps/s", 100_000
+    )
 
     batch = 256
     env = BatchedNavEnv(library, ["FloorPlan201"], batch, max_steps=10**9)
@@ -87,7 +92,9 @@ def bench_steps(cache_dir: Path) -> None:
     start = time.perf_counter()
     for row in moves:
         env.step(row)
-    report("batched episode-steps/s, B=256", moves.size / (time.perf_counter() - start), "ep-steps/s", 1_000_000)
+    report(
+        "batched episode-steps/s, B=256", moves.size / (time.perf_counter() - start), "ep-steps/s", 1_000_000
+    )
     start = time.perf_counter()
     for row in moves[:200]:
         env.step(row)

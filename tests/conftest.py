@@ -4,9 +4,19 @@ scene is ray-cast at most once per session and the user's own cache is never tou
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+
+_SESSION_CACHE: str | None = None
 
 
 def pytest_configure(config) -> None:
+    global _SESSION_CACHE
     if "MAPLESS_TEST_KEEP_CACHE" not in os.environ:
-        os.environ["MAPLESS_CACHE"] = tempfile.mkdtemp(prefix="mapless-test-cache-")
+        _SESSION_CACHE = tempfile.mkdtemp(prefix="mapless-test-cache-")
+        os.environ["MAPLESS_CACHE"] = _SESSION_CACHE
+
+
+def pytest_unconfigure(config) -> None:
+    if _SESSION_CACHE is not None:
+        shutil.rmtree(_SESSION_CACHE, ignore_errors=True)

@@ -30,8 +30,14 @@ CPU = torch.device("cpu")
 
 
 def _setup(name: str, *overrides: str):
-    config = tiny_config(name, "env.max_steps=7", "model.interaction_steps=3", "model.max_inner_updates=2",
-                         "model.inner_lr=0.05", *overrides)
+    config = tiny_config(
+        name,
+        "env.max_steps=7",
+        "model.interaction_steps=3",
+        "model.max_inner_updates=2",
+        "model.inner_lr=0.05",
+        *overrides,
+    )
     torch.manual_seed(0)
     model = new_model(config)
     library = fixture_library()
@@ -57,7 +63,9 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
     targets, rewards = target_fields(config), reward_config(config)
 
     # Per episode, as an async worker computes it.
-    single_env = NavEnv(library, episodes=episodes, targets=targets, rewards=rewards, max_steps=config.env.max_steps)
+    single_env = NavEnv(
+        library, episodes=episodes, targets=targets, rewards=rewards, max_steps=config.env.max_steps
+    )
     single_losses, single_grads, lengths = [], [], []
     for b, episode in enumerate(episodes):
         actor = make_actor(model, first_order)
@@ -68,20 +76,27 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
         lengths.append(int(trajectory.length[0]))
 
     # All episodes in lockstep.
-    batch_env = BatchedNavEnv(library, config.env.scene_list(), B, targets=targets, rewards=rewards,
-                              max_steps=config.env.max_steps)
+    batch_env = BatchedNavEnv(
+        library, config.env.scene_list(), B, targets=targets, rewards=rewards, max_steps=config.env.max_steps
+    )
     actor = make_actor(model, first_order)
     model.zero_grad(set_to_none=True)
     trajectory = run_batch(actor, batch_env, episodes, noise, keys, CPU)
     assert trajectory.length.tolist() == lengths
     if model.adaptive:
         assert actor.state.updates > 0, "the test episodes should be long enough for inner steps"
+        theta0 = dict(model.named_parameters())
+        assert any(not torch.equal(w, theta0[n].expand_as(w)) for n, w in actor.state.fast.items()), (
+            "the inner steps should have moved the fast weights"
+        )
     losses = episode_losses(trajectory, config.loss)
     torch.testing.assert_close(losses.total.detach(), torch.stack(single_losses), rtol=1e-4, atol=1e-5)
 
     if not first_order:  # per-episode gradients straight from the batched graph
         for b in range(B):
-            grads = torch.autograd.grad(losses.total[b], trainable(model), retain_graph=True, allow_unused=True)
+            grads = torch.autograd.grad(
+                losses.total[b], trainable(model), retain_graph=True, allow_unused=True
+            )
             for g, expected in zip(grads, single_grads[b], strict=True):
                 g = torch.zeros_like(expected) if g is None else g
                 torch.testing.assert_close(g, expected, rtol=1e-3, atol=1e-6)

@@ -94,6 +94,7 @@ class BatchedTrainer:
         else:
             self.device = torch.device("cpu")
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
+        self._clock, self._out_of_time = time.perf_counter(), False
 
     # -- setup -----------------------------------------------------------------------------------
     def _setup(self, resume: dict | None) -> None:
@@ -175,8 +176,11 @@ class BatchedTrainer:
     # -- loop ------------------------------------------------------------------------------------
     def _budget_reached(self) -> bool:
         cfg = self.config
-        return (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes) or (
-            cfg.frames > 0 and self.counters["frames"] >= cfg.frames
+        # The wall-clock limit is decided in _account, agreed over ranks (clocks differ per rank).
+        return (
+            (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes)
+            or (cfg.frames > 0 and self.counters["frames"] >= cfg.frames)
+            or self._out_of_time
         )
 
     def update(self) -> dict[str, Any]:
@@ -208,6 +212,7 @@ class BatchedTrainer:
             description=f"{cfg.model.name} batched",
         )
         start, start_frames = time.perf_counter(), self.counters["frames"]
+        self._clock, self._out_of_time = start, False
         first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)
         stopped = False
         try:
@@ -236,6 +241,7 @@ class BatchedTrainer:
 
     def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
         """Merge statistics over ranks, advance counters, log and checkpoint. Returns True to stop."""
+        cfg = self.config
         traj, losses = result["trajectory"], result["losses"]
         rows = torch.tensor(
             np.stack([traj.success, traj.spl(), traj.length, traj.total_reward()]), dtype=torch.float64
@@ -251,6 +257,7 @@ class BatchedTrainer:
                 float(n),
                 float(traj.frames),
                 float(stop_requested),
+                float(cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds),
             ],
             dtype=torch.float64,
         )
@@ -271,6 +278,7 @@ class BatchedTrainer:
         monitor.advance(self.counters["episodes"], self.counters["frames"])
         if totals[6] > 0:
             return True
+        self._out_of_time = bool(totals[7] > 0)
         every = self.config.checkpoint_every
         if self.counters["episodes"] // every > before // every and not self._budget_reached():
             self._checkpoint()

@@ -129,6 +129,8 @@ class TrainConfig:
     workers: worker processes in async mode.
     episodes / frames: the budget; training stops when either is reached (0 = no limit on that one,
         but one of them must be set).
+    max_seconds: also stop after this much wall-clock training time (0 = no limit; benchmarks and
+        the learning check use it; a resumed run gets the full amount again).
     seed: seeds the episode sampler, the action noise and torch (rank r of torchrun adds r).
     device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
     threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
@@ -147,6 +149,7 @@ class TrainConfig:
     workers: int = 2
     episodes: int = 0
     frames: int = 0
+    max_seconds: float = 0.0
     seed: int = 1
     device: str = "cpu"
     threads: int = 0
@@ -165,6 +168,7 @@ class TrainConfig:
         _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
         _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
         _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
+        _require(self.max_seconds >= 0, "max_seconds", f"must be >= 0, got {self.max_seconds}")
         _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")

@@ -79,6 +79,8 @@ def _worker(
         torch.manual_seed(seed)
         rng = np.random.default_rng(seed)
         library = library_factory()
+        for scene in config.env.scene_list():  # load every scene up front, as the batched env does
+            library[scene]
         sampler = training_sampler(config, library, seed)
         env = NavEnv(
             library,
@@ -141,6 +143,7 @@ class AsyncTrainer:
         self.library_factory = library_factory or BuiltinLibrary(config)
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self.workers: list[Any] = []
+        self._clock = time.perf_counter()
 
     # -- checkpoints -----------------------------------------------------------------------------
     def _checkpoint(self, final: bool = False) -> None:
@@ -162,8 +165,10 @@ class AsyncTrainer:
 
     def _budget_reached(self) -> bool:
         cfg = self.config
-        return (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes) or (
-            cfg.frames > 0 and self.counters["frames"] >= cfg.frames
+        return (
+            (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes)
+            or (cfg.frames > 0 and self.counters["frames"] >= cfg.frames)
+            or (cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds)
         )
 
     # -- workers ---------------------------------------------------------------------------------
@@ -254,6 +259,7 @@ class AsyncTrainer:
             description=f"{cfg.model.name} async",
         )
         start, start_frames = time.perf_counter(), self.counters["frames"]
+        self._clock = start
         first: tuple[float, int] | None = None  # (time, frames) of the first finished episode
         stopped = False
         try:

@@ -107,7 +107,7 @@ class RunMonitor:
         self.episodes, self.frames = episodes, frames
         if self.bar is not None:
             self.bar.update(delta)
-            now, ep0, fr0 = self._start
+            now, _ep0, fr0 = self._start
             fps = (frames - fr0) / max(time.perf_counter() - now, 1e-9)
             self.bar.set_postfix(
                 ep=episodes, fps=f"{fps:.0f}", success=f"{self.running_success:.3f}", refresh=False

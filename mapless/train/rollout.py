@@ -114,7 +114,11 @@ class Trajectory:
 
 
 class Actor:
-    """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop."""
+    """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop.
+
+    :meth:`compact` drops ended episodes from the batch being stepped, so neither the forward pass
+    nor the per-episode fast weights are computed for finished episodes.
+    """
 
     def __init__(self, model: NavModel, inner: InnerLoop | None):
         self.model = model
@@ -131,15 +135,38 @@ class Actor:
             return self.model(obs, hidden, prev_policy)
         return self.inner.forward(self.state, obs, hidden, prev_policy)
 
+    def can_compact(self) -> bool:
+        """Plain models: always. Adaptive models: only between interaction chunks, because the next
+        inner step differentiates the learned loss of a chunk's k rows with respect to the very fast
+        weight tensors that produced them (a copy taken mid-chunk would miss the earlier rows)."""
+        return self.state is None or not self.state.rows
+
     def observe(self, output: ModelOutput, alive: Tensor) -> None:
         if self.inner is not None:
             self.inner.observe(self.state, output, alive)
+
+    def compact(self, keep: Tensor) -> None:
+        """Keep only the rows ``keep`` (indices into the current batch) of the inner-loop state (call
+        it only when :meth:`can_compact`).
+
+        Ended episodes never adapt again and their later outputs are masked out of the loss, so
+        dropping them changes nothing for the others. The first-order records keep the full-size
+        tensors: the kept rows are differentiable functions of them."""
+        if self.state is None:
+            return
+        self.state.fast = {name: _take_rows(w, keep) for name, w in self.state.fast.items()}
 
     def backward(self, loss: Tensor) -> None:
         if self.inner is None:
             loss.backward()
         else:
             self.inner.backward(self.state, loss)
+
+
+def _take_rows(w: Tensor, keep: Tensor) -> Tensor:
+    if w.dim() > 0 and w.stride(0) == 0:  # still the broadcast θ_0: stay a view, copy nothing
+        return w[:1].expand(len(keep), *w.shape[1:])
+    return w.index_select(0, keep)
 
 
 def make_actor(model: NavModel, first_order: bool = False) -> Actor:
@@ -171,30 +198,45 @@ def run_batch(
     obs_keys: tuple[str, ...],
     device: torch.device,
 ) -> Trajectory:
-    """Play ``episodes`` to their end in lockstep (slot ``b`` uses ``noise[b, t]`` at step ``t``)."""
+    """Play ``episodes`` to their end in lockstep (slot ``b`` uses ``noise[b, t]`` at step ``t``).
+
+    Only the episodes still running are stepped through the model (``slots``: their indices in the
+    batch); the per-step outputs are scattered back to full ``[B]`` rows, zero where an episode has
+    already ended (those entries have mask 0)."""
     batch = len(episodes)
     env.reset(np.arange(batch), episodes)
     actor.start(batch)
     hidden = actor.model.initial_state(batch, device)
     prev_policy = torch.zeros(batch, NUM_ACTIONS, device=device)
     noise_t = torch.as_tensor(noise, dtype=torch.float32, device=device)
+    slots = np.arange(batch)
+    slots_t = torch.as_tensor(slots, device=device)
     logits, values, actions, rewards, mask = [], [], [], [], []
     success = np.zeros(batch, dtype=bool)
     for t in range(noise.shape[1]):
-        out = actor.forward(to_tensors(env.observe(obs_keys), device), hidden, prev_policy)
-        action = sample_actions(out.logits, noise_t[:, t])
-        step = env.step(action.cpu().numpy())
+        obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
+        out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
+        action = sample_actions(out.logits, noise_t[slots_t, t])
+        full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
+        step = env.step(full_action.cpu().numpy())
         success |= step.success
-        logits.append(out.logits)
-        values.append(out.value)
-        actions.append(action)
+        logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
+        values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
+        actions.append(full_action)
         rewards.append(step.reward)
         mask.append(step.active.astype(np.float32))
         # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
         hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-        actor.observe(out, torch.as_tensor(~env.done, device=device))
-        if env.done.all():
+        alive = ~env.done[slots]
+        actor.observe(out, torch.as_tensor(alive, device=device))
+        if not alive.any():
             break
+        if not alive.all() and actor.can_compact():
+            keep = torch.as_tensor(np.flatnonzero(alive), device=device)
+            slots, slots_t = slots[alive], slots_t.index_select(0, keep)
+            hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
+            prev_policy = prev_policy.index_select(0, keep)
+            actor.compact(keep)
     stacked = _stack(logits, values, actions, rewards, mask, device)
     return Trajectory(
         *stacked, success=success, length=env.steps.copy(), optimal_length=env.optimal_length.copy()

@@ -49,11 +49,8 @@ def train(
         )
     try:
         run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
-        if resume is not None:
-            if ckpt.config_of(resume).model != config.model:
-                raise ConfigError(
-                    "config key 'model': a run cannot be resumed with another model configuration"
-                )
+        if resume is not None and ckpt.config_of(resume).model != config.model:
+            raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
             save_config(config, run_dir / ckpt.CONFIG_FILE)

@@ -1,0 +1,137 @@
+"""Training throughput, batched vs async, side by side: frames/s, ratio, memory.
+
+Each (model, mode) runs in a fresh process for ``--seconds`` of training on the cached training
+scenes (fresh models, real sampling, real updates: exactly ``mapless train`` with a time budget).
+Frames/s is steady-state: it starts after the first batched update / the first async episode, so
+worker start-up and scene loading are not counted (they are printed separately as start-up).
+Memory is the peak resident set of the trainer process, plus the largest async worker.
+
+    python bench/bench_train.py [--models cvmeta,savn,mjolnir_o,a3c,sp] [--seconds 60] [--batch 32]
+                                [--workers 2] [--scenes train:kitchen] [--json out.json]
+
+The originals train at about 42-49 frames/s (A3C), 34-46 (SAVN), 21-31 (Scene Priors), 33-61
+(MJOLNIR-o) on this kind of machine with 2 workers; targets are ten times the best of those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REFERENCE = {"a3c": 49, "savn": 46, "sp": 31, "mjolnir_o": 61}
+TARGET = {"a3c": 490, "savn": 460, "sp": 310, "mjolnir_o": 610}
+
+
+def _measure(
+    model: str, mode: str, seconds: float, batch: int, workers: int, scenes: str, threads: int
+) -> dict:
+    """Runs inside a fresh interpreter (see main)."""
+    from mapless.config import apply_overrides, from_dict
+    from mapless.train.batched import BatchedTrainer
+    from mapless.train.config import TrainConfig
+    from mapless.train.hogwild import AsyncTrainer
+
+    data = apply_overrides(
+        {},
+        [
+            f"model.name={model}",
+            f"mode={mode}",
+            f"env.scenes={scenes}",
+            f"batch_size={batch}",
+            f"workers={workers}",
+            "episodes=1000000000",
+            f"max_seconds={seconds}",
+            "checkpoint_every=1000000000",
+            "log_every=1000000000",
+            f"threads={threads}",
+            "progress=false",
+        ],
+    )
+    config = from_dict(TrainConfig, data)
+    began = time.perf_counter()
+    with tempfile.TemporaryDirectory() as run_dir:
+        trainer = (AsyncTrainer if mode == "async" else BatchedTrainer)(config, Path(run_dir))
+        summary = trainer.run()
+    wall = time.perf_counter() - began
+    usage = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    return {
+        "model": model,
+        "mode": mode,
+        "frames_per_s": summary["steady_frames_per_s"],
+        "frames": summary["frames"],
+        "episodes": summary["episodes"],
+        "mean_length": summary["frames"] / max(summary["episodes"], 1),
+        "startup_s": max(wall - seconds, 0.0),  # scene loading, worker spawn, final checkpoint
+        "rss_mb": usage,
+        "worker_rss_mb": children if mode == "async" else 0.0,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", default="cvmeta,savn,mjolnir_o,a3c,sp")
+    parser.add_argument("--modes", default="batched,async")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch threads of the batched trainer (1 on a machine shared with other jobs)",
+    )
+    parser.add_argument("--scenes", default="train:kitchen")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--one", nargs=2, metavar=("MODEL", "MODE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.one:
+        result = _measure(*args.one, args.seconds, args.batch, args.workers, args.scenes, args.threads)
+        print("RESULT " + json.dumps(result))
+        return
+
+    results = []
+    for model in args.models.split(","):
+        for mode in args.modes.split(","):
+            command = [sys.executable, __file__, "--one", model, mode, "--seconds", str(args.seconds),
+                       "--batch", str(args.batch), "--workers", str(args.workers), "--scenes", args.scenes,
+                       "--threads", str(args.threads)]  # fmt: skip
+            out = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+            line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
+            if line is None:
+                print(out.stdout, out.stderr, file=sys.stderr)
+                raise SystemExit(f"{model} {mode} failed")
+            result = json.loads(line[7:])
+            results.append(result)
+            print(
+                f"{model:10s} {mode:8s} {result['frames_per_s']:8.1f} frames/s  "
+                f"({result['episodes']:.0f} episodes, mean length {result['mean_length']:.1f}, "
+                f"start-up {result['startup_s']:.1f} s, RSS {result['rss_mb']:.0f} MB"
+                + (f", worker {result['worker_rss_mb']:.0f} MB" if mode == "async" else "")
+                + ")",
+                flush=True,
+            )
+
+    print(f"\n{'model':10s} {'batched':>9s} {'async':>9s} {'ratio':>7s} {'target':>7s} {'reference':>9s}")
+    by = {(r["model"], r["mode"]): r for r in results}
+    for model in args.models.split(","):
+        b = by.get((model, "batched"), {}).get("frames_per_s", float("nan"))
+        a = by.get((model, "async"), {}).get("frames_per_s", float("nan"))
+        print(
+            f"{model:10s} {b:9.1f} {a:9.1f} {b / a if a else float('nan'):6.1f}x "
+            f"{TARGET.get(model, float('nan')):7.0f} {REFERENCE.get(model, float('nan')):9.0f}"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,144 @@
+"""Run folders, checkpoints and exact resume of the batched trainer; bad configs fail early."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from train_fixtures import fixture_library, tiny_config
+
+from mapless.cli import main as cli_main
+from mapless.config import ConfigError, load_config
+from mapless.train import checkpoint as ckpt
+from mapless.train.config import TrainConfig
+from mapless.train.run import resume_config, train
+
+
+def _state(run_dir: Path) -> dict:
+    return ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
+
+
+def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
+    config = tiny_config("savn", "episodes=16", "checkpoint_every=8", "log_every=4")
+    straight = tmp_path / "straight"
+    summary = train(config, straight, library_factory=fixture_library)
+    assert summary["episodes"] == 16 and summary["frames"] > 0
+
+    # The run folder: resolved config, TensorBoard events, metrics, snapshots, checkpoint, final model.
+    assert load_config(TrainConfig, straight / ckpt.CONFIG_FILE) == config
+    assert list(straight.glob("events.out.tfevents.*"))
+    records = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
+    assert [r["episodes"] for r in records] == [4, 8, 12, 16]
+    for key in (
+        "charts/success",
+        "charts/spl",
+        "charts/reward",
+        "charts/episode_length",
+        "losses/total",
+        "losses/entropy",
+        "perf/frames_per_s",
+    ):
+        assert key in records[-1]
+    assert [n for n, _ in ckpt.snapshots(straight)] == [8, 16]
+    assert (straight / ckpt.FINAL_MODEL_FILE).is_file()
+    assert not list(straight.rglob("*.tmp"))
+
+    # Stop half-way, then resume with the budget extended: bit-identical to the straight run.
+    halted = tmp_path / "halted"
+    train(config.replace(episodes=8), halted, library_factory=fixture_library)
+    assert _state(halted)["counters"]["episodes"] == 8
+    resumed_config, state = resume_config(halted, ["episodes=16"])
+    assert resumed_config == config
+    train(resumed_config, halted, resume=state, library_factory=fixture_library)
+
+    a, b = _state(straight), _state(halted)
+    assert a["counters"] == b["counters"]
+    for key, value in a["model"].items():
+        assert torch.equal(value, b["model"][key]), key
+    for index, slot in a["optimizer"]["state"].items():
+        for name, value in slot.items():
+            assert torch.equal(value, b["optimizer"]["state"][index][name]), (index, name)
+
+    # What evaluation loads: model + config, weights_only under the hood.
+    model, loaded_config, counters = ckpt.load_model(straight)
+    assert loaded_config.model == config.model and counters["episodes"] == 16
+    assert not model.training
+    for key, value in model.state_dict().items():
+        assert torch.equal(value, a["model"][key])
+
+
+def test_checkpoint_files_are_plain_data(tmp_path: Path) -> None:
+    train(tiny_config("a3c", "episodes=4"), tmp_path, library_factory=fixture_library)
+    for path in [tmp_path / ckpt.CHECKPOINT_FILE, tmp_path / ckpt.FINAL_MODEL_FILE]:
+        payload = torch.load(path, weights_only=True)  # raises on anything but plain data
+        assert payload["format"] == ckpt.FORMAT_VERSION
+    with pytest.raises(ckpt.CheckpointError, match="no checkpoint"):
+        resume_config(tmp_path / "missing")
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("model.name=resnet9000", "model.name"),
+        ("optim.lr=-1e-4", "optim.lr"),
+        ("env.scenes=FloorPlan999", "env.scenes"),
+        ("env.scenes=nosuchsplit", "env.scenes"),
+        ("episodes=0", "episodes"),
+        ("batch_size=0", "batch_size"),
+        ("mode=sync", "mode"),
+        ("optim.learning_rate=1", "learning_rate"),
+    ],
+)
+def test_bad_config_is_a_clear_error(override: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        tiny_config("a3c", override)
+
+
+def test_cli_reports_bad_config_before_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = tmp_path / "bad.yaml"
+    config.write_text(yaml.safe_dump({"model": {"name": "a3c"}, "episodes": 10, "optim": {"lr": -1}}))
+    assert cli_main(["train", str(config), "--run-dir", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "optim.lr" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+    assert cli_main(["train", "--resume", str(tmp_path / "nothing")]) == 2
+    assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The real path: `mapless train CONFIG.yaml --set ...`, then `--resume RUN_DIR` with a larger budget."""
+    config = tmp_path / "train.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "model": {"name": "cvmeta", "hidden_size": 16, "fusion_channels": 2},
+                "env": {"scenes": "FloorPlan401"},  # built once into the session's test cache
+                "batch_size": 4,
+                "episodes": 8,
+                "checkpoint_every": 8,
+                "log_every": 4,
+                "threads": 1,
+                "progress": False,
+            }
+        )
+    )
+    run_dir = tmp_path / "run"
+    assert cli_main(["train", str(config), "--run-dir", str(run_dir), "--set", "meta.first_order=true"]) == 0
+    first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert first["episodes"] == 8 and first["run_dir"] == str(run_dir)
+    assert load_config(TrainConfig, run_dir / ckpt.CONFIG_FILE).meta.first_order
+    assert cli_main(["train", "--resume", str(run_dir), "--set", "episodes=16"]) == 0
+    second = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert second["episodes"] == 16 and second["updates"] == 4
+    assert [n for n, _ in ckpt.snapshots(run_dir)] == [8, 16]
+
+
+@pytest.mark.parametrize(
+    "path", sorted(Path(__file__).parent.parent.glob("experiments/train_*.yaml")), ids=lambda p: p.name
+)
+def test_shipped_training_configs_load(path: Path) -> None:
+    config = load_config(TrainConfig, path)
+    assert config.episodes > 0
