@@ -86,6 +86,8 @@ class ExperimentConfig:
     rooms: room types of Table 2 (training rooms) and Table 3 (ablated rooms).
     focus: the paper's model (cvmeta), for Table 3 and the showcase figures.
     runs_dir: where training runs go (shared between experiments).
+    single_room_scenes: Table 2's training scenes per room type (default ``train:<room>``, the 20
+        training floor plans of the room).
     """
 
     experiment: str = "table1"
@@ -99,6 +101,7 @@ class ExperimentConfig:
     focus: str = "cvmeta"
     runs_dir: str = "runs/experiments"
     gif: bool = True
+    single_room_scenes: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.experiment not in EXPERIMENTS:
@@ -168,21 +171,21 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
 
 
 def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
-    """Train unless ``run_dir`` already holds a finished run (its final model)."""
-    from mapless.config import save_config
-    from mapless.train.checkpoint import FINAL_MODEL_FILE
+    """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
+    (a resumable checkpoint but no final model) is resumed."""
+    from mapless.train import checkpoint as ckpt
+    from mapless.train.run import train
 
-    if (run_dir / FINAL_MODEL_FILE).is_file():
+    if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():
         log(f"  reusing finished run {run_dir}")
         return run_dir
-    run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(train_cfg, run_dir / "config.yaml")
-    log(f"  training {train_cfg.model.name} (seed {train_cfg.seed}) -> {run_dir}")
-    if train_cfg.mode == "async":
-        from mapless.train.hogwild import AsyncTrainer as Trainer
+    resume = None
+    if (run_dir / ckpt.CHECKPOINT_FILE).is_file():
+        resume = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
+        log(f"  resuming {run_dir} at {resume.get('counters', {}).get('episodes', 0)} episodes")
     else:
-        from mapless.train.batched import BatchedTrainer as Trainer
-    stats = Trainer(train_cfg, run_dir).run()
+        log(f"  training {train_cfg.model.name} (seed {train_cfg.seed}) -> {run_dir}")
+    stats = train(train_cfg, run_dir, resume=resume)
     log(
         f"    {stats.get('episodes', 0):.0f} episodes, {stats.get('frames', 0):.0f} frames in {stats.get('seconds', 0):.0f} s"
     )
@@ -307,7 +310,7 @@ def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     for model in config.models:
         for room in config.rooms:
             log(f"{model}, {ROOM_ABBREV[room]}-single:")
-            extra = {"env": {"scenes": f"train:{room}"}}
+            extra = {"env": {"scenes": config.single_room_scenes.get(room, f"train:{room}")}}
             if model == "random":
                 per_seed, meta = _model_results(config, ev, model, log=log)
             else:

@@ -127,6 +127,35 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert "reusing finished run" in capsys.readouterr().out
 
 
+def test_reproduce_table2_and_table3(workspace):
+    root, config = workspace
+    reports = root / "reports"
+    common = [
+        "--config",
+        str(config),
+        "--reports",
+        str(reports),
+        "--set",
+        "models=[a3c]",
+        "--set",
+        "rooms=[kitchen]",
+    ]
+    table2 = [*common, "--set", "experiment=table2", "--set", "single_room_scenes={kitchen: FloorPlan1}"]
+    assert main(["reproduce", "table2", *table2]) == 0
+    md = (reports / "table2" / "table2.md").read_text()
+    assert "| a3c | K-single |" in md and "Kitchen SR / SPL" in md
+    assert main(["reproduce", "table3", *common, "--set", "experiment=table3"]) == 0
+    payload = json.loads((reports / "table3" / "table3.json").read_text())
+    labels = [m["model"] for m in payload["models"]]
+    assert labels == ["a3c", "Kitchen_no_relationships"]
+    run_dirs = [m["runs"][0]["run_dir"] for m in payload["models"]]
+    assert "__no-kitchen__" in run_dirs[1] and run_dirs[0] != run_dirs[1]
+    from mapless.train.checkpoint import config_of, load_file
+
+    ablated = config_of(load_file(Path(run_dirs[1]) / "final_model.pt"))
+    assert "kitchen" not in ablated.model.hierarchy_rooms
+
+
 def test_eval_cli_oracle_and_run_folder(workspace, capsys):
     root, _ = workspace
     out = root / "oracle"

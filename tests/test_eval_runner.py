@@ -132,6 +132,33 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
     assert probs.shape == (batch, 6)
 
 
+def test_in_place_test_time_step_matches_inner_loop(episodes):
+    from mapless.models.synthetic import synthetic_observations
+    from mapless.train.meta import InnerLoop
+
+    torch.manual_seed(1)
+    model = build_model("cvmeta", hidden_size=32)
+    reference = InnerLoop(model, meta_train=False)  # before the agent freezes θ and φ
+    ref_state = reference.start(3)
+    agent = AdaptiveModelAgent(model, 3)
+    obs = synthetic_observations(3, model.knowledge)
+    due = torch.tensor([True, False, True])
+    for state, step in (
+        (agent.state, agent.adapt),
+        (ref_state, lambda rows, d: reference.adapt(ref_state, rows, d)),
+    ):
+        hidden, prev, rows = model.initial_state(3), torch.zeros(3, 6), []
+        for _ in range(6):
+            out = reference.forward(state, obs, hidden, prev)
+            hidden, prev = out.hidden, torch.softmax(out.logits, dim=-1)
+            rows.append(torch.cat([hidden[0], prev], dim=-1))
+        step(torch.stack(rows, dim=1), due)
+    for name, w in agent.state.fast.items():
+        assert torch.equal(w, ref_state.fast[name]), name
+    assert not torch.equal(agent.state.fast["lstm.weight_ih"][0], model.lstm.weight_ih)
+    assert torch.equal(agent.state.fast["lstm.weight_ih"][1], model.lstm.weight_ih)
+
+
 def test_adaptive_model_evaluates_end_to_end(episodes):
     spec = AgentSpec(model={"name": "savn", "hidden_size": 64}, init_seed=0)
     run = evaluate(spec, episodes[:10], EvalSettings(batch_size=4, workers=1), LIBRARY)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 
@@ -123,9 +124,16 @@ def _reproduce(args: argparse.Namespace) -> int:
     from mapless.experiments import load_experiment, reproduce
 
     config = load_experiment(args.experiment, args.budget, args.config, args.set, args.seeds)
-    command = " ".join(["mapless", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("mapless") else ""
-    result = reproduce(
-        config, args.reports, command=command or f"mapless reproduce {args.experiment} --budget {args.budget}"
-    )
+    # The report records the exact command (overrides included) that produced it.
+    parts = ["mapless", "reproduce", args.experiment, "--budget", args.budget]
+    if args.seeds:
+        parts += ["--seeds", str(args.seeds)]
+    if args.config:
+        parts += ["--config", str(args.config)]
+    for item in args.set:
+        parts += ["--set", item]
+    if args.reports != Path("reports"):
+        parts += ["--reports", str(args.reports)]
+    result = reproduce(config, args.reports, command=shlex.join(parts))
     print(result["markdown"])
     return 0

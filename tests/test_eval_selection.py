@@ -1,0 +1,43 @@
+"""Checkpoint selection rule and the fixed episode sets as the evaluator loads them."""
+
+from __future__ import annotations
+
+import pytest
+
+from mapless.episodes import evalsets
+from mapless.errors import MaplessError
+from mapless.evaluate.selection import PROTOCOLS, best_index, load_episodes
+from mapless.scenes.catalogue import room_type_of, split_of
+
+
+def test_best_by_success_then_spl_then_earliest():
+    scores = [
+        {"success": 0.40, "spl": 0.20},
+        {"success": 0.45, "spl": 0.10},
+        {"success": 0.45, "spl": 0.15},
+        {"success": 0.45, "spl": 0.15},
+    ]
+    assert best_index(scores) == 2
+    assert best_index(scores[:2]) == 1
+
+
+def test_paper_protocol_is_labelled():
+    assert PROTOCOLS["standard"][:2] == ("val", "test")
+    assert PROTOCOLS["paper"][:2] == ("paper", "paper")
+    assert "PAPER PROTOCOL" in PROTOCOLS["paper"][2]
+
+
+@pytest.mark.skipif(not evalsets.builtin_path("test").exists(), reason="built-in episode sets not generated")
+def test_builtin_sets_prefix_per_room():
+    full = load_episodes("test")
+    assert len(full) == 1000 and {split_of(e.scene) for e in full} == {"test"}
+    small = load_episodes("test", per_room=3, rooms=("kitchen", "bathroom"))
+    assert [room_type_of(e.scene) for e in small] == ["kitchen"] * 3 + ["bathroom"] * 3
+    # A prefix of each room's episodes of the full set: small budgets evaluate the same episodes.
+    assert small[:3] == [e for e in full if room_type_of(e.scene) == "kitchen"][:3]
+    assert all(e.optimal_length >= 2 for e in full)
+
+
+def test_missing_episode_file_says_how_to_make_it(tmp_path):
+    with pytest.raises(MaplessError, match="mapless episodes make"):
+        load_episodes("val", tmp_path / "none.json.gz")
