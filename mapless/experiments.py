@@ -355,7 +355,11 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     for name, rooms in variants:
         label = config.focus if rooms is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
         log(f"{label}:")
-        extra = None if rooms is None else {"model": {"hierarchy_rooms": list(rooms)}}
+        extra = (
+            None
+            if rooms is None
+            else {"model": {"hierarchy_rooms": list(rooms)}, "env": {"parent_reward_rooms": list(rooms)}}
+        )
         per_seed, meta = _model_results(
             config, ev, config.focus, "full" if rooms is None else f"no-{name}", extra, log
         )
@@ -373,7 +377,7 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     ]
     lines = _header(config, "Table 3: ablation of the hierarchical relationships", ev, command)
     lines += [
-        "Each `<Room>_no_relationships` run drops that room type's target->parent edges from the hierarchical graph.",
+        "Each `<Room>_no_relationships` run drops that room type's target->parent edges from the hierarchical graph and its parent-object reward.",
         "",
         markdown(header, rows),
         "",

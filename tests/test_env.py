@@ -158,3 +158,17 @@ def test_parent_reward_pays_once_per_parent_per_episode(library):
 def test_off_grid_start_names_the_nearest_valid_pose(library):
     with pytest.raises(MaplessError, match="nearest valid pose"):
         library.pose_of(SCENE, (0.13, 0.02, 0, 0))
+
+
+def test_parent_reward_can_be_switched_off_per_room_type(library):
+    data = library[SCENE]
+    rewards = RewardConfig(parent_reward=True, parent_reward_rooms=("bedroom", "bathroom"))
+    assert not rewards.pays_parent_reward("kitchen") and rewards.pays_parent_reward("bedroom")
+    episode, _ = far_episode(library)
+    env = NavEnv(library, [episode], rewards=rewards)
+    env.reset()
+    paid = [env.step(2)[1] for _ in range(8)]  # a full turn in a kitchen: no parent pays
+    assert all(r == pytest.approx(-0.01) for r in paid)
+    batched = BatchedNavEnv(library, [SCENE], 1, rewards=rewards)
+    batched.reset([0], [episode])
+    assert not batched.parent_weights.any() and data.room_type == "kitchen"

@@ -99,6 +99,7 @@ class NavEnv(gym.Env):
         self._target_embedding = self.targets.embedding(episode.target)
         self._target_index = np.array(self.targets.index(episode.target), dtype=np.int64)
         self._parent_weights = self.targets.parent_weights(self.data.room_type, episode.target)
+        self._pays_parents = self.rewards.pays_parent_reward(self.data.room_type)
         self._seen_parents = np.zeros_like(self._parent_weights, dtype=bool)
         self.max_steps = self.fixed_max_steps or max_steps_for(self.data.room_type, self.mode)
         self.steps = 0
@@ -155,7 +156,7 @@ class NavEnv(gym.Env):
             self.pose = nxt
             self.visited.append(nxt)
             terminated = False
-            if self.rewards.parent_reward:
+            if self._pays_parents:
                 bonus, self._seen_parents = parent_reward(
                     self._context[nxt, :, 0] > 0, self._parent_weights, self._seen_parents
                 )

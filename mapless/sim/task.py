@@ -9,6 +9,7 @@ import numpy as np
 
 from mapless.knowledge.glove import glove_vector
 from mapless.knowledge.parents import parent_weights
+from mapless.scenes.catalogue import ROOM_TYPES
 from mapless.scenes.categories import category_set
 
 #: SAVN's evaluation limits: 100 steps, 200 in living rooms; training episodes stop at 30.
@@ -26,6 +27,11 @@ class RewardConfig:
     step_penalty: float = -0.01
     success_reward: float = 5.0
     parent_reward: bool = False
+    #: Room types whose parents pay the bonus (the hierarchy ablation drops one room type).
+    parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
+
+    def pays_parent_reward(self, room_type: str) -> bool:
+        return self.parent_reward and room_type in self.parent_reward_rooms
 
 
 def max_steps_for(room_type: str, mode: str) -> int:

@@ -114,7 +114,11 @@ class BatchedNavEnv:
             self.done[slot] = False
             self.target_embedding[slot] = self.targets.embedding(episode.target)
             self.target_index[slot] = self.targets.index(episode.target)
-            self.parent_weights[slot] = self.targets.parent_weights(data.room_type, episode.target)
+            self.parent_weights[slot] = (
+                self.targets.parent_weights(data.room_type, episode.target)
+                if self.rewards.pays_parent_reward(data.room_type)
+                else 0.0
+            )
             self.seen_parents[slot] = False
             optimal = episode.optimal_length
             if optimal < 0:

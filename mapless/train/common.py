@@ -38,7 +38,10 @@ def target_fields(config: TrainConfig) -> TargetFields:
 def reward_config(config: TrainConfig) -> RewardConfig:
     env = config.env
     return RewardConfig(
-        step_penalty=env.step_penalty, success_reward=env.success_reward, parent_reward=config.parent_reward
+        step_penalty=env.step_penalty,
+        success_reward=env.success_reward,
+        parent_reward=config.parent_reward,
+        parent_reward_rooms=env.parent_reward_rooms,
     )
 
 

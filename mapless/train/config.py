@@ -14,13 +14,13 @@ from typing import Literal
 from mapless.config import ConfigError
 from mapless.models.base import ModelConfig
 from mapless.models.registry import MODELS
-from mapless.scenes.catalogue import resolve_scenes
+from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes
 from mapless.scenes.categories import targets
 from mapless.sim.config import SimConfig
 from mapless.sim.task import TRAIN_MAX_STEPS
 
 #: Models whose reference training uses MJOLNIR's hierarchical (parent-object) reward.
-PARENT_REWARD_MODELS = ("mjolnir_o", "mjolnir_r")
+PARENT_REWARD_MODELS = ("mjolnir_o", "mjolnir_r", "cvmeta")
 
 
 def _require(ok: bool, key: str, message: str) -> None:
@@ -35,7 +35,8 @@ class EnvConfig:
     scenes: split name (``train``), ``split:room``, or comma-separated FloorPlan names.
     target_set: target list per room type (``mjolnir22`` or ``savn``).
     parent_reward: MJOLNIR's parent-object bonus; None = on for mjolnir_o/mjolnir_r (MJOLNIR's
-        ``--partial_reward``), off otherwise.
+        ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off otherwise.
+    parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
     step_penalty, success_reward: SAVN's rewards.
     max_steps: training episode limit (30 in both references).
     cache_dir: scene cache folder (None = $MAPLESS_CACHE or ~/.cache/mapless).
@@ -45,6 +46,7 @@ class EnvConfig:
     scenes: str = "train"
     target_set: str = "mjolnir22"
     parent_reward: bool | None = None
+    parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
     step_penalty: float = -0.01
     success_reward: float = 5.0
     max_steps: int = TRAIN_MAX_STEPS
@@ -62,6 +64,12 @@ class EnvConfig:
         except KeyError as error:
             raise ConfigError(f"config key 'env.target_set': {error}") from None
         _require(self.max_steps > 0, "env.max_steps", f"must be positive, got {self.max_steps}")
+        unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
+        _require(
+            not unknown_rooms,
+            "env.parent_reward_rooms",
+            f"unknown room types {sorted(unknown_rooms)}; valid: {ROOM_TYPES}",
+        )
 
     def scene_list(self) -> list[str]:
         return list(dict.fromkeys(resolve_scenes(self.scenes)))
