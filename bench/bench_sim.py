@@ -69,10 +69,7 @@ def bench_steps(cache_dir: Path) -> None:
     library = SceneLibrary.builtin(SimConfig(), cache_dir)
     data = library["FloorPlan201"]
     starts = np.flatnonzero(data.horizon == 0)
-    episodes = [
-        Episode("FloorPlan201", "Laptop", (float(data.x[p]), float(data.z[p]), int(data.yaw[p]), 0))
-        for p in starts[:50]
-    ]
+    episodes = [Episode("FloorPlan201", "Laptop", data.pose_tuple(p)) for p in starts[:50]]
     env = NavEnv(library, episodes)
     env.reset(seed=0)
     actions = np.random.default_rng(0).integers(0, 6, 300_000).tolist()

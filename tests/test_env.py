@@ -23,15 +23,11 @@ def library() -> SceneLibrary:
     return SceneLibrary.builtin()
 
 
-def start_of(data, pose: int) -> tuple[float, float, int, int]:
-    return float(data.x[pose]), float(data.z[pose]), int(data.yaw[pose]), int(data.horizon[pose])
-
-
 def far_episode(library, target="Toaster") -> tuple[Episode, int]:
     data = library[SCENE]
     distances = data.target_distances(target)
     pose = int(np.argmax(np.where(data.horizon == 0, distances, -1)))
-    return Episode(SCENE, target, start_of(data, pose)), pose
+    return Episode(SCENE, target, data.pose_tuple(pose)), pose
 
 
 def optimal_actions(data, pose: int, target: str) -> list[int]:
@@ -39,7 +35,9 @@ def optimal_actions(data, pose: int, target: str) -> list[int]:
     distances = data.target_distances(target)
     actions = []
     while distances[pose] > 0:
-        action = int(np.argmin([distances[q] if distances[q] >= 0 else 1 << 30 for q in data.successors[pose]]))
+        action = int(
+            np.argmin([distances[q] if distances[q] >= 0 else 1 << 30 for q in data.successors[pose]])
+        )
         pose = int(data.successors[pose, action])
         actions.append(action)
     return [*actions, DONE]
@@ -81,7 +79,7 @@ def test_failed_moves_leave_the_pose_unchanged(library):
     data = library[SCENE]
     blocked = np.flatnonzero(data.successors[:, 0] == np.arange(data.n_poses))
     pose = int(blocked[0])
-    env = NavEnv(library, [Episode(SCENE, "Toaster", start_of(data, pose))])
+    env = NavEnv(library, [Episode(SCENE, "Toaster", data.pose_tuple(pose))])
     env.reset()
     _, _, _, _, info = env.step(0)
     assert info["failed_action"] and info["pose"] == pose
@@ -101,7 +99,7 @@ def test_batched_env_matches_the_single_env(library):
     rng = np.random.default_rng(3)
     starts = rng.choice(np.flatnonzero(data.horizon == 0), size=8, replace=False)
     targets = ["Toaster", "Mug", "Apple", "Bread"]
-    episodes = [Episode(SCENE, targets[i % 4], start_of(data, int(p))) for i, p in enumerate(starts)]
+    episodes = [Episode(SCENE, targets[i % 4], data.pose_tuple(int(p))) for i, p in enumerate(starts)]
     actions = rng.integers(0, 6, size=(30, 8))
     rewards = RewardConfig(parent_reward=True)
     batched = BatchedNavEnv(library, [SCENE], 8, rewards=rewards)
@@ -142,7 +140,9 @@ def test_parent_reward_pays_once_per_parent_per_episode(library):
     # A pose that sees no parent, whose right turn brings one into view.
     candidates = np.flatnonzero(~(in_view & is_parent).any(1) & (in_view[turn_right] & is_parent).any(1))
     pose = int(candidates[0])
-    env = NavEnv(library, [Episode(SCENE, "Toaster", start_of(data, pose))], rewards=RewardConfig(parent_reward=True))
+    env = NavEnv(
+        library, [Episode(SCENE, "Toaster", data.pose_tuple(pose))], rewards=RewardConfig(parent_reward=True)
+    )
     env.reset()
     _, reward, _, _, _ = env.step(2)
     assert reward == pytest.approx(weights[in_view[turn_right[pose]] & is_parent].max())

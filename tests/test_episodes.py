@@ -3,6 +3,8 @@ training sampler."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -23,7 +25,9 @@ def library() -> SceneLibrary:
 
 @pytest.mark.parametrize("split", evalsets.EVAL_SPLITS)
 def test_builtin_sets_match_the_protocol(split):
-    episodes, header = evalsets.load(evalsets.builtin_path(split), expected_fingerprint=fingerprint(SimConfig()))
+    episodes, _header = evalsets.load(
+        evalsets.builtin_path(split), expected_fingerprint=fingerprint(SimConfig())
+    )
     assert len(episodes) == 1000
     rooms = [room_type_of(e.scene) for e in episodes]
     assert {r: rooms.count(r) for r in set(rooms)} == dict.fromkeys(MJOLNIR_TARGETS, 250)
@@ -41,7 +45,9 @@ def test_regeneration_is_bit_for_bit(library):
     made = evalsets.make_eval_set(library, "val", per_room=12, room_types=("bathroom",))
     assert made == shipped_bathroom
     again = evalsets.make_eval_set(library, "val", per_room=12, room_types=("bathroom",))
-    assert evalsets.dumps(made, "val", "mjolnir22", 0, "f") == evalsets.dumps(again, "val", "mjolnir22", 0, "f")
+    assert evalsets.dumps(made, "val", "mjolnir22", 0, "f") == evalsets.dumps(
+        again, "val", "mjolnir22", 0, "f"
+    )
     for episode in made:  # stored lengths are BFS lengths; starts do not already see the target
         data = library[episode.scene]
         pose = library.pose_of(episode.scene, episode.start)
@@ -68,7 +74,7 @@ def test_training_sampler_cycles_rooms_and_weights_targets_by_instances(library)
     rng = np.random.default_rng(0)
     episodes = [sampler.sample(rng) for _ in range(200)]
     rooms = [room_type_of(e.scene) for e in episodes]
-    assert all(a != b for a, b in zip(rooms, rooms[1:], strict=False))  # alternates between the two rooms
+    assert all(a != b for a, b in itertools.pairwise(rooms))  # alternates between the two rooms
     assert all(e.start[3] == 0 for e in episodes)
     bathroom = [e.target for e in episodes if e.scene == "FloorPlan425"]
     data = library["FloorPlan425"]

@@ -63,12 +63,7 @@ def make_eval_set(
                 Episode(
                     scene=scene,
                     target=target,
-                    start=(
-                        float(data.x[start]),
-                        float(data.z[start]),
-                        int(data.yaw[start]),
-                        int(data.horizon[start]),
-                    ),
+                    start=data.pose_tuple(start),
                     optimal_length=distance + 1,
                     episode_id=f"{split}/{room}/{made:03d}",
                 )

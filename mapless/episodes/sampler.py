@@ -71,11 +71,6 @@ class TrainingSampler:
             return Episode(
                 scene=scene,
                 target=target,
-                start=(
-                    float(data.x[start]),
-                    float(data.z[start]),
-                    int(data.yaw[start]),
-                    int(data.horizon[start]),
-                ),
+                start=data.pose_tuple(start),
             )
         raise RuntimeError(f"no valid training episode found in {room} scenes {scenes}")

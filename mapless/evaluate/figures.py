@@ -94,7 +94,7 @@ def trajectory_figure(
         if result.scene != first.scene or result.index != first.index:
             raise ValueError("trajectory_figure compares models on one and the same episode")
         end = result.poses[-1] if result.poses else result.start_pose
-        end_pose = (float(data.x[end]), float(data.z[end]), int(data.yaw[end]), int(data.horizon[end]))
+        end_pose = data.pose_tuple(end)
         draw_top_down(ax, scene, sim, highlight_types=(result.target, *parents), pose=end_pose)
         xy = _path_xy(library, result)
         colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
@@ -135,14 +135,7 @@ def trajectory_gif(
     scene = load_scene(result.scene)
     data = library[result.scene]
     poses = (result.start_pose, *result.poses)[::every]
-    frames = [
-        Image.fromarray(
-            egocentric_view(
-                scene, sim, float(data.x[p]), float(data.z[p]), int(data.yaw[p]), int(data.horizon[p]), size
-            )
-        )
-        for p in poses
-    ]
+    frames = [Image.fromarray(egocentric_view(scene, sim, *data.pose_tuple(p), size)) for p in poses]
     path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=250, loop=0)
 

@@ -70,6 +70,10 @@ class SceneData:
     def key(self, pose: int) -> str:
         return pose_key(self.x[pose], self.z[pose], self.yaw[pose], self.horizon[pose])
 
+    def pose_tuple(self, pose: int) -> tuple[float, float, int, int]:
+        """``(x, z, yaw, horizon)`` of a pose id, as plain Python numbers (an episode's ``start``)."""
+        return float(self.x[pose]), float(self.z[pose]), int(self.yaw[pose]), int(self.horizon[pose])
+
     def in_view(self, pose: int) -> np.ndarray:
         return self.view_instance[self.view_ptr[pose] : self.view_ptr[pose + 1]]
 

@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from mapless.config import to_dict
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
@@ -159,19 +158,16 @@ class BatchedTrainer:
         rngs = dist.gather_objects(self._rng_state(), self.ctx)  # collective: every rank calls it
         if self.run_dir is None:
             return
-        ckpt.save_checkpoint(
+        ckpt.save_run_state(
             self.run_dir,
-            {
-                "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
-                "optimizer": self.optimizer.state_dict(),
-                "rng": rngs,
-                "counters": {**self.counters, "world_size": self.ctx.world_size},
-                "config": to_dict(self.config),
-            },
+            self.model,
+            self.optimizer,
+            self.config,
+            self.counters,
+            rngs,
+            self.ctx.world_size,
+            final,
         )
-        ckpt.save_snapshot(self.run_dir, self.model, self.config, self.counters)
-        if final:
-            ckpt.save_final(self.run_dir, self.model, self.config, self.counters)
 
     # -- loop ------------------------------------------------------------------------------------
     def _budget_reached(self) -> bool:

@@ -100,6 +100,34 @@ def save_checkpoint(run_dir: Path, state: dict) -> Path:
     return path
 
 
+def save_run_state(
+    run_dir: Path,
+    model: NavModel,
+    optimizer: torch.optim.Optimizer,
+    config: TrainConfig,
+    counters: dict[str, int],
+    rngs: list,
+    world_size: int,
+    final: bool,
+) -> None:
+    """Everything a trainer writes at a checkpoint: the resumable state, a model snapshot and, at
+    the end of the budget, the final model."""
+    save_checkpoint(
+        run_dir,
+        {
+            # Copies, so a Hogwild worker updating shared weights cannot tear the saved tensors.
+            "model": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+            "optimizer": optimizer.state_dict(),
+            "rng": rngs,
+            "counters": {**counters, "world_size": world_size},
+            "config": to_dict(config),
+        },
+    )
+    save_snapshot(run_dir, model, config, counters)
+    if final:
+        save_final(run_dir, model, config, counters)
+
+
 def config_of(payload: dict) -> TrainConfig:
     return from_dict(TrainConfig, payload["config"])
 

@@ -32,7 +32,6 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
-from mapless.config import to_dict
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
 from mapless.train import checkpoint as ckpt
@@ -149,19 +148,9 @@ class AsyncTrainer:
     def _checkpoint(self, final: bool = False) -> None:
         if self.run_dir is None:
             return
-        ckpt.save_checkpoint(
-            self.run_dir,
-            {
-                "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
-                "optimizer": self.optimizer.state_dict(),
-                "rng": [],
-                "counters": {**self.counters, "world_size": 1},
-                "config": to_dict(self.config),
-            },
+        ckpt.save_run_state(
+            self.run_dir, self.model, self.optimizer, self.config, self.counters, [], 1, final
         )
-        ckpt.save_snapshot(self.run_dir, self.model, self.config, self.counters)
-        if final:
-            ckpt.save_final(self.run_dir, self.model, self.config, self.counters)
 
     def _budget_reached(self) -> bool:
         cfg = self.config
