@@ -19,11 +19,11 @@ def _round(values, ndigits: int = 3):
 
 
 def convert(shared: Path) -> dict:
-    compact = json.load(gzip.open(shared / "derived" / "ithor_scenes_compact.json.gz"))
-    reachable = json.load(open(shared / "derived" / "ithor_reachable_positions.json"))
+    compact = json.loads(gzip.decompress((shared / "derived" / "ithor_scenes_compact.json.gz").read_bytes()))
+    reachable = json.loads((shared / "derived" / "ithor_reachable_positions.json").read_text())
     scenes = {}
     for name, scene in compact.items():
-        full = json.load(open(shared / "layouts" / "metadata_v5" / f"{name}_physics.json"))
+        full = json.loads((shared / "layouts" / "metadata_v5" / f"{name}_physics.json").read_text())
         objects = []
         for obj in scene["objects"]:
             meta = full[obj["objectId"]]
