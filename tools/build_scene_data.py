@@ -63,8 +63,8 @@ def main() -> None:
     shared = Path(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/ithor")
     out = Path(__file__).resolve().parents[1] / "mapless" / "data" / "scenes" / "ithor_v5_scenes.json.gz"
     data = convert(shared)
-    with gzip.open(out, "wt", compresslevel=9) as f:
-        json.dump(data, f, separators=(",", ":"))
+    # mtime=0: the same input gives the same bytes (the file's hash selects the scene cache).
+    out.write_bytes(gzip.compress(json.dumps(data, separators=(",", ":")).encode(), compresslevel=9, mtime=0))
     print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB, {len(data['scenes'])} scenes)")
 
 
