@@ -27,7 +27,12 @@ def test_load_returns_what_was_built_and_reuses_the_file(tmp_path, monkeypatch):
 
 def test_every_parameter_changes_the_fingerprint():
     base = cache.fingerprint(FAST)
-    for change in ({"visibility_distance": 1.5}, {"horizons": (-30, 0, 30)}, {"eye_height": 1.5}, {"horizontal_fov": 100.0}):
+    for change in (
+        {"visibility_distance": 1.5},
+        {"horizons": (-30, 0, 30)},
+        {"eye_height": 1.5},
+        {"horizontal_fov": 100.0},
+    ):
         assert cache.fingerprint(SimConfig(**{**FAST.as_dict(), **change})) != base
 
 

@@ -33,8 +33,14 @@ def test_show_writes_a_png(tmp_path, capsys):
         (("scenes", "show", "FloorPlan999", "--out", "x.png"), "unknown scene 'FloorPlan999'"),
         (("scenes", "show", "FloorPlan1", "--target", "Toastr", "--out", "x.png"), "Did you mean Toaster"),
         (("scenes", "show", "FloorPlan425", "--pose", "0.1,0.1,0,0", "--out", "x.png"), "nearest valid pose"),
-        (("scenes", "build", "FloorPlan1", "--sim", "visiblity_distance=1"), "unknown config key 'visiblity_distance'"),
-        (("scenes", "build", "FloorPlan1", "--sim", "visibility_distance=far"), "config key 'visibility_distance'"),
+        (
+            ("scenes", "build", "FloorPlan1", "--sim", "visiblity_distance=1"),
+            "unknown config key 'visiblity_distance'",
+        ),
+        (
+            ("scenes", "build", "FloorPlan1", "--sim", "visibility_distance=far"),
+            "config key 'visibility_distance'",
+        ),
         (("scenes", "list", "tset"), "unknown split 'tset'"),
         (("episodes", "show", "nowhere"), "neither an episode file nor"),
     ],

@@ -37,7 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     show = sub.add_parser("show", help="top-down map and egocentric view of a scene as a PNG")
     show.add_argument("scene")
-    show.add_argument("--pose", type=parse_pose, help="x,z,yaw,horizon; write --pose=-1.25,0.5,90,0 when x is negative (default: first reachable pose)")
+    show.add_argument(
+        "--pose",
+        type=parse_pose,
+        help="x,z,yaw,horizon; write --pose=-1.25,0.5,90,0 when x is negative (default: first reachable pose)",
+    )
     show.add_argument("--target", action="append", default=[], help="object type to highlight")
     show.add_argument("--out", type=Path, required=True)
     add_sim_arguments(show)
