@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from mapless.scenes.categories import category_set
@@ -37,16 +39,22 @@ def build_transitions(scene: Scene, config: SimConfig) -> np.ndarray:
     def pid(p: int, y: int, h: int) -> int:
         return (p * n_yaw + y) * n_hor + h
 
-    succ = np.empty((len(pos_i), N_MOVEMENT_ACTIONS), dtype=np.int32)
-    for pose, (p, y, h) in enumerate(zip(pos_i, yaw_i, hor_i, strict=True)):
+    @functools.cache
+    def move_destination(p: int, y: int) -> int | None:
+        """Grid point reached by MoveAhead from position ``p`` at yaw index ``y`` (None: blocked)."""
         yaw = np.radians(config.yaws[y])
         step = (int(np.round(np.sin(yaw))), int(np.round(np.cos(yaw))))
         x, z = positions[p]
         dest = cell.get((round(x / g) + step[0], round(z / g) + step[1]))
-        if dest is not None:
-            a, b = positions[p], positions[dest]
-            if any(segment_hits_polygon(a, b, poly) for poly in polygons):
-                dest = None
+        if dest is not None and any(
+            segment_hits_polygon(positions[p], positions[dest], poly) for poly in polygons
+        ):
+            return None
+        return dest
+
+    succ = np.empty((len(pos_i), N_MOVEMENT_ACTIONS), dtype=np.int32)
+    for pose, (p, y, h) in enumerate(zip(pos_i, yaw_i, hor_i, strict=True)):
+        dest = move_destination(int(p), int(y))
         succ[pose, 0] = pose if dest is None else pid(dest, y, h)
         succ[pose, 1] = pid(p, (y - 1) % n_yaw, h)
         succ[pose, 2] = pid(p, (y + 1) % n_yaw, h)

@@ -167,17 +167,29 @@ class RayCaster:
         return Frame(ids=ids, depth=depth, points=points)
 
     def _slab(self, eye: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Entry and exit distances of rays through their boxes (slab test in the box frame)."""
-        cos, sin = self.boxes.axis[box, 0], self.boxes.axis[box, 1]
-        rel = eye - self.boxes.centre[box]
-        o = np.stack([rel[:, 0] * cos + rel[:, 2] * sin, rel[:, 1], -rel[:, 0] * sin + rel[:, 2] * cos], 1)
-        d = np.stack(
-            [dirs[:, 0] * cos + dirs[:, 2] * sin, dirs[:, 1], -dirs[:, 0] * sin + dirs[:, 2] * cos], 1
+        """Entry and exit distances of rays through their boxes (slab test in the box frame). The
+        camera's position in every box frame is computed once per pose, then gathered per pair."""
+        cos_all, sin_all = self.boxes.axis[:, 0], self.boxes.axis[:, 1]
+        rel = eye - self.boxes.centre
+        origin = np.stack(
+            [
+                rel[:, 0] * cos_all + rel[:, 2] * sin_all,
+                rel[:, 1],
+                -rel[:, 0] * sin_all + rel[:, 2] * cos_all,
+            ],
+            1,
         )
-        half = self.boxes.half[box]
+        low, high = -self.boxes.half - origin, self.boxes.half - origin
+        cos, sin = cos_all[box], sin_all[box]
+        local = (dirs[:, 0] * cos + dirs[:, 2] * sin, dirs[:, 1], -dirs[:, 0] * sin + dirs[:, 2] * cos)
+        t_in = np.full(len(box), -np.inf)
+        t_out = np.full(len(box), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d
-            t1, t2 = (-half - o) * inv, (half - o) * inv
-        t1 = np.where(np.isnan(t1), -np.inf, t1)
-        t2 = np.where(np.isnan(t2), np.inf, t2)
-        return np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+            for axis, d in enumerate(local):
+                inv = 1.0 / d
+                t1, t2 = low[box, axis] * inv, high[box, axis] * inv
+                t1 = np.where(np.isnan(t1), -np.inf, t1)  # 0 * inf: the ray lies in the slab's plane
+                t2 = np.where(np.isnan(t2), np.inf, t2)
+                t_in = np.maximum(t_in, np.minimum(t1, t2))
+                t_out = np.minimum(t_out, np.maximum(t1, t2))
+        return t_in, t_out
