@@ -221,3 +221,49 @@ def test_non_adaptive_models_are_rejected():
     assert model.adaptive and not a3c.adaptive
     with pytest.raises(TypeError):
         InnerLoop(a3c)
+
+
+def compacted_run(model, loop, obs, actions, rewards, lengths):
+    """``batched_run``, but ended episodes are dropped from the batch at every chunk boundary (as the
+    trainer's rollout does); outputs are scattered back to the full batch."""
+    T, B = actions.shape
+    mask = torch.stack([torch.arange(T) < n for n in lengths], dim=1).double()
+    state = loop.start(B)
+    hidden = tuple(x.double() for x in model.initial_state(B))
+    policy = torch.zeros(B, 6, dtype=torch.float64)
+    slots = torch.arange(B)
+    logits, values = [], []
+    for t in range(T):
+        out = loop.forward(state, {k: v[slots] for k, v in obs[t].items()}, hidden, policy)
+        logits.append(out.logits.new_zeros(B, 6).index_copy(0, slots, out.logits))
+        values.append(out.value.new_zeros(B, 1).index_copy(0, slots, out.value))
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+        alive = torch.tensor([t < lengths[b] - 1 for b in slots.tolist()])
+        loop.observe(state, out, alive)
+        if not state.rows and not alive.all() and alive.any():
+            keep = torch.nonzero(alive).squeeze(1)
+            loop.compact(state, keep)
+            slots = slots[keep]
+            hidden = tuple(x.index_select(0, keep) for x in hidden)
+            policy = policy.index_select(0, keep)
+    loss = a3c_loss(torch.stack(logits), torch.stack(values), actions, rewards, mask).total.sum()
+    return state, loss
+
+
+@pytest.mark.parametrize("first_order", [False, True])
+def test_dropping_ended_episodes_changes_nothing(first_order):
+    model, knowledge = make_model("cvmeta", max_updates=3)
+    obs, actions, rewards = make_episodes(knowledge, 12, B=3, seed=7)
+    lengths = [12, 5, 8]  # episode 1 leaves after the first chunk, episode 2 after the second
+    results = []
+    for run in (batched_run, compacted_run):
+        model.zero_grad(set_to_none=True)
+        loop = InnerLoop(model, first_order=first_order)
+        state, *_, loss = run(model, loop, obs, actions, rewards, lengths)
+        assert state.updates == 3
+        loop.backward(state, loss)
+        results.append((loss.item(), grads_of(model)))
+    (full_loss, full), (compact_loss, compact) = results
+    assert compact_loss == pytest.approx(full_loss, rel=1e-12)
+    for n in full:
+        assert torch.allclose(compact[n], full[n], atol=1e-10, rtol=1e-8), n

@@ -20,11 +20,9 @@ from mapless.models.base import (
     GRID,
     NUM_ACTIONS,
     ModelConfig,
-    ModelOutput,
-    NavModel,
+    RecurrentNavModel,
     glorot_init,
     init_heads_and_lstm,
-    lstm_step,
     tile,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -64,7 +62,7 @@ class SavnEmbeddingMixin:
             self.action_predict_linear = nn.Linear(2 * lstm_input, NUM_ACTIONS)
 
 
-class A3CModel(SavnEmbeddingMixin, NavModel):
+class A3CModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "SAVN's non-adaptive A3C (ResNet map + GloVe + previous policy -> LSTM)"
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
@@ -72,11 +70,10 @@ class A3CModel(SavnEmbeddingMixin, NavModel):
         self._build_base_embedding()
         self._finish_init(BASE_EMBEDDING)
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
-        h, c = lstm_step(self._base_embedding(obs, prev_policy), hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+    ) -> tuple[Tensor, Tensor | None]:
+        return self._base_embedding(obs, prev_policy), None
 
 
 class SavnModel(LearnedLossMixin, A3CModel):

@@ -135,6 +135,32 @@ class NavModel(nn.Module):
         return self.config.graph or str(self.default_graph)
 
 
+class RecurrentNavModel(NavModel):
+    """A model of the form encoder -> ``LSTMCell`` (``self.lstm``) -> actor/critic heads on h.
+
+    Subclasses implement :meth:`encode` (and :meth:`value` if the critic sees more than h). The split
+    lets the meta-learning inner loop run the encoder with per-episode weights under ``vmap`` and the
+    LSTM with shared weights plus low-rank per-episode updates (:mod:`mapless.train.meta`).
+    """
+
+    def encode(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
+        """``(LSTM input [B, D], extra critic input or None)``."""
+        raise NotImplementedError
+
+    def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
+        """Critic ``[B, 1]`` on the new hidden state (and the encoder's extra critic input)."""
+        return self.critic_linear(h)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        x, critic_input = self.encode(obs, hidden, prev_policy)
+        h, c = lstm_step(x, hidden, self.lstm)
+        return ModelOutput(self.actor_linear(h), self.value(h, critic_input), (h, c))
+
+
 # -- layers --------------------------------------------------------------------------------------
 def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
     """``nn.LSTMCell`` math (gate order i, f, g, o) written out so that it works under vmap with

@@ -26,19 +26,17 @@ from mapless.models.base import (
     EMBED,
     NUM_ACTIONS,
     ModelConfig,
-    ModelOutput,
-    NavModel,
+    RecurrentNavModel,
     context_vector,
     glorot_init,
     init_heads_and_lstm,
-    lstm_step,
     normalized_adjacency_parameter,
     tile,
 )
 from mapless.models.learned_loss import LearnedLossMixin
 
 
-class ContextVectorMetaModel(LearnedLossMixin, NavModel):
+class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     description = (
         "the paper's model: context vector + hierarchical GCN + GloVe, pointwise fusion, meta-learning"
     )
@@ -80,9 +78,9 @@ class ContextVectorMetaModel(LearnedLossMixin, NavModel):
         x = F.relu(self.W2(self.A @ x))
         return x.transpose(1, 2)
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
+    ) -> tuple[Tensor, Tensor | None]:
         cv = context_vector(obs, self.all_glove)  # [B, C, 5]
         nodes = cv.shape[1]
         context = self.dropout(F.relu(self.context_embed(cv.transpose(1, 2))))
@@ -90,5 +88,4 @@ class ContextVectorMetaModel(LearnedLossMixin, NavModel):
         target = tile(F.relu(self.embed_glove(obs["target_embedding"])), nodes)
         action = tile(F.relu(self.embed_action(prev_policy)), nodes)
         fused = F.relu(self.pointwise(torch.cat([context, graph, target, action], dim=1)))
-        h, c = lstm_step(self.dropout(fused).flatten(1), hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+        return self.dropout(fused).flatten(1), None

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
 from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
-from mapless.models.base import ModelConfig, ModelOutput, NavModel, lstm_step, normalized_adjacency_parameter
+from mapless.models.base import ModelConfig, RecurrentNavModel, normalized_adjacency_parameter
 from mapless.models.learned_loss import LearnedLossMixin
 
 GRAPH_EMBEDDING = 512
@@ -47,7 +47,7 @@ class ScenePriorsGraph(nn.Module):
         return self.final_mapping(x.squeeze(-1))
 
 
-class ScenePriorsModel(SavnEmbeddingMixin, NavModel):
+class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "Scene Priors: a3c embedding || GCN graph embedding -> LSTM(3648)"
     default_graph = "vg"
 
@@ -59,15 +59,14 @@ class ScenePriorsModel(SavnEmbeddingMixin, NavModel):
         )
         self._finish_init(BASE_EMBEDDING + GRAPH_EMBEDDING)
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
+    ) -> tuple[Tensor, Tensor | None]:
         x = torch.cat([self._base_embedding(obs, prev_policy), self.graph(obs["context"][..., 0])], dim=1)
-        h, c = lstm_step(x, hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+        return x, None
 
 
-class GveModel(LearnedLossMixin, SavnEmbeddingMixin, NavModel):
+class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
     """SAVN's actor path unchanged; the Scene-Priors graph embedding g enters only the critic,
     ``V = Linear(1024 -> 1)([h || g])`` (a linear head on the concatenation is the additive decomposed
     value W_h h + W_g g + b). Adaptive like SAVN; the inner step cannot reach the graph or critic."""
@@ -93,9 +92,10 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, NavModel):
     def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
         return (*super()._inner_unreachable_prefixes(), "gve.")
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
-        h, c = lstm_step(self._base_embedding(obs, prev_policy), hidden, self.lstm)
-        g = self.gve(obs["context"][..., 0])
-        return ModelOutput(self.actor_linear(h), self.critic_linear(torch.cat([h, g], dim=1)), (h, c))
+    ) -> tuple[Tensor, Tensor | None]:
+        return self._base_embedding(obs, prev_policy), self.gve(obs["context"][..., 0])
+
+    def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
+        return self.critic_linear(torch.cat([h, critic_input], dim=1))

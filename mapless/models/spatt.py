@@ -20,17 +20,15 @@ from mapless.models.base import (
     GRID,
     NUM_ACTIONS,
     ModelConfig,
-    ModelOutput,
-    NavModel,
+    RecurrentNavModel,
     glorot_init,
     init_heads_and_lstm,
-    lstm_step,
     unit,
 )
 from mapless.models.learned_loss import LearnedLossMixin
 
 
-class SpattModel(LearnedLossMixin, NavModel):
+class SpattModel(LearnedLossMixin, RecurrentNavModel):
     description = "SpAtt: target/memory/action spatial attention over the 7x7 map; SAVN inner loop"
     default_inner_lr = 0.01  # barmayo/spatial_attention --inner_lr default (SAVN's is 1e-4)
 
@@ -75,10 +73,8 @@ class SpattModel(LearnedLossMixin, NavModel):
         p = torch.softmax((alpha.unsqueeze(-1) * potentials).sum(dim=1), dim=-1)
         return cells, p
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
+    ) -> tuple[Tensor, Tensor | None]:
         cells, p = self.attention(obs, hidden, prev_policy)
-        attended = (F.relu(cells) * p.unsqueeze(1)).flatten(1)
-        h, c = lstm_step(attended, hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+        return (F.relu(cells) * p.unsqueeze(1)).flatten(1), None

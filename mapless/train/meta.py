@@ -6,10 +6,23 @@ ends the episode) the adapted parameters θ take one SGD step on the learned int
     θ_{i+1} = θ_i - α ∇_θ L_int^φ(rows_i; θ_i),   rows_i = the last k rows [h_t || π_t] (acted with θ_i)
 
 and the outer loss is the A3C loss of the whole episode, each step evaluated with the θ_i that acted
-(the paper's eq. 3/5). Batching: every episode b owns its fast weights θ^b (a ``[B, ...]`` tensor per
-adapted parameter, starting as a broadcast view of θ_0); the forward pass is
-``vmap(functional_call(model, θ^b, ...))``. Because episode b's interaction loss depends only on θ^b,
-one ``autograd.grad`` of Σ_b L_int^b w.r.t. the batched θ gives every episode's own gradient.
+(the paper's eq. 3/5). Every episode b owns its fast weights θ^b; because episode b's interaction loss
+depends only on θ^b, one ``autograd.grad`` of Σ_b L_int^b gives every episode's own gradient.
+
+Representation of θ^b during training (``meta_train=True``). The adaptive models are
+:class:`~mapless.models.base.RecurrentNavModel`: encoder -> LSTMCell -> actor/critic heads.
+
+* The LSTM matrices ``weight_ih`` (4H x D, ~6.5M entries) and ``weight_hh`` (4H x H) are never copied
+  per episode: their inner gradient is a sum of outer products over the steps that used them,
+  ``g_b = Σ_t δ_{b,t} [x_{b,t} || h_{b,t-1}]ᵀ`` with ``δ_{b,t} = ∂L_int^b/∂gates_{b,t}`` (BPTT included),
+  so ``W^b [x || h] = W_0 [x || h] - α Σ_i Σ_t δ^{(i)}_{b,t} ([x^{(i)}_{b,t} || h^{(i)}_{b,t-1}] · [x || h])``.
+  Each inner step appends its k factors (``left = -α δ [B, k, 4H]``, ``right [B, k, D + H]``), and
+  the δ come from ``autograd.grad`` w.r.t. the recorded gate pre-activations (with ``create_graph``
+  for second order), so the values and every derivative are those of the materialised update; only
+  the floating-point summation order differs.
+* Everything else that adapts (encoder, LSTM biases, actor) is small and is materialised per episode
+  as a ``[B, ...]`` tensor, starting as a broadcast view of θ_0. The encoder runs as
+  ``vmap(functional_call(encoder, θ^b, ...))``, the LSTM and heads run batched.
 
 Meta-gradients (:meth:`InnerLoop.backward`):
 
@@ -19,11 +32,16 @@ Meta-gradients (:meth:`InnerLoop.backward`):
 * ``first_order`` (the first-order Taylor form, eq. 4: L_nav(θ) - α <∇L_int^φ(θ), ∇L_nav(θ)>): the
   fast weights follow the same trajectory but the inner step is a constant shift for θ_0 (its gradient
   is the sum of the outer loss's partial derivatives w.r.t. every θ_i), and φ receives the gradient of
-  the inner-product term, ``-α Σ_i (∂g_i/∂φ)ᵀ v_i`` with ``v_i = ∂L_nav/∂θ_{i+1}`` held constant. For a
-  single inner step this differs from second order only by ``-α H_int v`` on θ_0 (the φ gradients are
-  equal); tests/test_meta.py checks exactly that.
+  the inner-product term, ``-α Σ_i (∂g_i/∂φ)ᵀ v_i`` with ``v_i = ∂L_nav/∂θ_{i+1}`` held constant. For
+  the low-rank matrices ``v_i = Σ_{t after step i} Δ_t r_tᵀ`` (``Δ_t = ∂L_nav/∂gates_t``), so
+  ``<g_i, v_i> = Σ_{s,t} (δ_s · Δ_t)(r_s · r_t)`` needs no matrix either. For a single inner step this
+  differs from second order only by ``-α H_int v`` on θ_0 (the φ gradients are equal);
+  tests/test_meta.py checks exactly that.
 
-At test time (``meta_train=False``) the same inner steps run with φ frozen and no graph is kept.
+At test time (``meta_train=False``) the same inner steps run with φ frozen and no graph is kept; there
+every adapted parameter, the LSTM matrices included, is materialised per episode (no graph makes the
+copies cheap, and the evaluation runner resets and updates them in place per slot) and the whole model
+runs under ``vmap``.
 """
 
 from __future__ import annotations
@@ -31,21 +49,65 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor
+import torch.nn.functional as F
+from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
-from mapless.models.base import ModelOutput, NavModel
+from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel
+
+#: LSTM matrices whose per-episode updates are kept in low rank during meta-training.
+LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
+#: Adapted parameters used by the batched recurrent core (not by the vmapped encoder).
+CORE_PREFIXES = ("lstm.", "actor_linear.")
+
+
+@dataclass
+class _Step:
+    """One forward step of the recurrent core, as needed for inner gradients of the LSTM matrices."""
+
+    gates: Tensor  # [B_t, 4H] pre-activations (a graph node to differentiate w.r.t.)
+    inputs: Tensor  # [B_t, D + H] = [x_t || h_{t-1}], the right factor of the step's gradient
+    ids: Tensor  # [B_t] episode indices (into the batch given to start) of the rows
+    updates: int  # inner steps taken before this step: it acted with θ_updates
 
 
 @dataclass
 class InnerLoopState:
     """Per-batch state of one lockstep rollout of B episodes (create with :meth:`InnerLoop.start`)."""
 
+    #: per-episode ``[B, ...]`` adapted parameters (training: all but :data:`LOW_RANK`).
     fast: dict[str, Tensor]
     rows: list[Tensor] = field(default_factory=list)
     updates: int = 0
     #: first order only: (inner gradients g_i, fast weights θ_{i+1}) of every inner step.
     records: list[tuple[dict[str, Tensor], dict[str, Tensor]]] = field(default_factory=list)
+    #: training: episode index (into the starting batch) of each current row, increasing.
+    ids: Tensor | None = None
+    batch_size: int = 0  # B at start
+    #: training: low-rank updates of the LSTM matrices, ``-α δ [B, K, 4H]`` and ``[x || h] [B, K, D+H]``.
+    left: Tensor | None = None
+    right: Tensor | None = None
+    #: training: the core steps since the last inner step (while more inner steps may come).
+    chunk: list[_Step] = field(default_factory=list)
+    #: first order only: per inner step (δ with its graph to φ, [x || h], ids), and every step after
+    #: the first inner step (their Δ_t = ∂L_nav/∂gates_t give v_i in :meth:`InnerLoop.backward`).
+    factor_records: list[tuple[Tensor, Tensor, Tensor]] = field(default_factory=list)
+    later_steps: list[_Step] = field(default_factory=list)
+    #: training: θ_0's LSTM matrices transposed into contiguous ``[D, 4H]`` / ``[H, 4H]`` copies.
+    weights_t: tuple[Tensor, Tensor] | None = None
+
+
+class _Encoder(nn.Module):
+    """``model.encode`` as a module's forward, so that ``functional_call`` can swap its weights."""
+
+    def __init__(self, model: RecurrentNavModel):
+        super().__init__()
+        self.model = model
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
+        return self.model.encode(obs, hidden, prev_policy)
 
 
 class InnerLoop:
@@ -59,6 +121,7 @@ class InnerLoop:
             out = loop.forward(state, obs, hidden, prev_policy)
             ...  # sample actions, step the environments
             loop.observe(state, out, alive)  # alive [B] bool: episode not ended by this step
+            # optionally, between chunks of k steps: loop.compact(state, keep)
         loop.backward(state, a3c_loss(...).total.sum())
     """
 
@@ -80,18 +143,31 @@ class InnerLoop:
         self.first_order = first_order
         self.meta_train = meta_train
         self.names = model.inner_parameter_names()
+        if meta_train:
+            if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
+                raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
+            self._encoder = _Encoder(model)
 
+    # -- rollout -------------------------------------------------------------------------------
     def start(self, batch_size: int) -> InnerLoopState:
         params = dict(self.model.named_parameters())
         fast = {}
         for name in self.names:
             p = params[name]
-            if self.meta_train:
+            if not self.meta_train:
+                fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
+            elif name not in LOW_RANK:
                 # A broadcast view: differentiable back to θ_0, no copy until the first update.
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape)
-            else:
-                fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
-        return InnerLoopState(fast=fast)
+        if not self.meta_train:
+            return InnerLoopState(fast=fast)
+        # One differentiable transposed copy per rollout, shared by every step. With F.linear's
+        # per-step transposed views, the forward uses and the inner steps' backward uses of a matrix
+        # produce gradients of different memory layouts, and profiles showed autograd summing those
+        # full-size (6.5M-entry) gradients with slow strided adds; row-major uses avoid that.
+        weights_t = tuple(params[n].t().contiguous() for n in LOW_RANK)
+        ids = torch.arange(batch_size, device=weights_t[0].device)
+        return InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, weights_t=weights_t)
 
     def forward(
         self,
@@ -101,6 +177,8 @@ class InnerLoop:
         prev_policy: Tensor,
     ) -> ModelOutput:
         """The model's forward pass with each episode's own fast weights."""
+        if self.meta_train:
+            return self._forward_low_rank(state, obs, hidden, prev_policy)
         model = self.model
 
         def one_episode(fast, episode_obs, h, c, policy):
@@ -115,6 +193,62 @@ class InnerLoop:
         )
         return ModelOutput(logits, value, (h, c))
 
+    def _forward_low_rank(
+        self,
+        state: InnerLoopState,
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+    ) -> ModelOutput:
+        model = self.model
+        encoder_fast = {f"model.{n}": w for n, w in state.fast.items() if not n.startswith(CORE_PREFIXES)}
+
+        def one_episode(fast, episode_obs, h, c, policy):
+            single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}
+            x, extra = functional_call(
+                self._encoder, fast, (single, (h.unsqueeze(0), c.unsqueeze(0)), policy.unsqueeze(0))
+            )
+            return (x[0],) if extra is None else (x[0], extra[0])
+
+        encoded = vmap(one_episode, randomness="different")(
+            encoder_fast, obs, hidden[0], hidden[1], prev_policy
+        )
+        x, extra = encoded[0], (encoded[1] if len(encoded) > 1 else None)
+
+        # The LSTM cell of base.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
+        h_prev, c_prev = hidden
+        weight_ih_t, weight_hh_t = state.weights_t
+        inputs = torch.cat([x, h_prev], dim=-1)
+        gates = (
+            x @ weight_ih_t
+            + h_prev @ weight_hh_t
+            + self._param(state, "lstm.bias_ih")
+            + self._param(state, "lstm.bias_hh")
+        )
+        if state.left is not None:
+            coefficients = torch.einsum("bkd,bd->bk", state.right, inputs)
+            gates = gates + torch.einsum("bk,bko->bo", coefficients, state.left)
+        i, f, g, o = gates.chunk(4, dim=-1)
+        c = torch.sigmoid(f) * c_prev + torch.sigmoid(i) * torch.tanh(g)
+        h = torch.sigmoid(o) * torch.tanh(c)
+
+        weight = self._param(state, "actor_linear.weight")
+        if weight.dim() == 3:
+            logits = torch.einsum("bh,bah->ba", h, weight) + self._param(state, "actor_linear.bias")
+        else:
+            logits = F.linear(h, weight, self._param(state, "actor_linear.bias"))
+
+        step = _Step(gates, inputs, state.ids, state.updates)
+        if state.updates < self.max_updates:
+            state.chunk.append(step)
+        if self.first_order and state.updates > 0:
+            state.later_steps.append(step)
+        return ModelOutput(logits, model.value(h, extra), (h, c))
+
+    def _param(self, state: InnerLoopState, name: str) -> Tensor:
+        """Per-episode ``[B, ...]`` fast weight, or θ_0 when the inner step does not adapt ``name``."""
+        return state.fast[name] if name in state.fast else self.model.get_parameter(name)
+
     def observe(self, state: InnerLoopState, output: ModelOutput, alive: Tensor) -> bool:
         """Record the step's row ``[h_t || π_t]``; after k rows take the inner step for the episodes
         still running. Returns True when an inner step was taken."""
@@ -128,16 +262,38 @@ class InnerLoop:
         self.adapt(state, rows, alive)
         return True
 
+    def compact(self, state: InnerLoopState, keep: Tensor) -> None:
+        """Keep only the rows ``keep`` (increasing indices into the current batch) of ``state``.
+
+        Call it only between interaction chunks (no rows buffered): the next inner step
+        differentiates the learned loss of a chunk's k rows w.r.t. the very fast weights that
+        produced them, and a copy taken mid-chunk would miss the earlier rows. Dropped episodes must
+        never adapt again and must not contribute to the outer loss after this point. Recorded steps
+        keep their full-size tensors (their ``ids`` say which episodes their rows are)."""
+        if state.rows:
+            raise RuntimeError("compact() only between interaction chunks")
+        state.fast = {name: _take_rows(w, keep) for name, w in state.fast.items()}
+        if state.ids is not None:
+            state.ids = state.ids.index_select(0, keep)
+        if state.left is not None:
+            state.left = state.left.index_select(0, keep)
+            state.right = state.right.index_select(0, keep)
+
+    # -- inner step ----------------------------------------------------------------------------
     def adapt(self, state: InnerLoopState, rows: Tensor, active: Tensor) -> None:
         """One inner SGD step of the episodes where ``active`` (``[B]`` bool) on ``rows [B, k, H+6]``."""
         loss = (self.model.learned_loss(rows) * active.to(rows.dtype)).sum()
         names = list(state.fast)
+        steps = state.chunk if self.meta_train else []
         keep_graph = self.meta_train  # second order needs it; first order needs g_i's graph to φ
         grads = torch.autograd.grad(
-            loss, [state.fast[n] for n in names], create_graph=keep_graph, allow_unused=True
+            loss,
+            [state.fast[n] for n in names] + [s.gates for s in steps],
+            create_graph=keep_graph,
+            allow_unused=True,
         )
         new_fast, used = {}, {}
-        for name, g in zip(names, grads, strict=True):
+        for name, g in zip(names, grads[: len(names)], strict=True):
             w = state.fast[name]
             if g is None:  # parameter outside the learned loss's reach: unchanged (SAVN)
                 new_fast[name] = w
@@ -149,11 +305,32 @@ class InnerLoop:
                 used[name] = g
             else:
                 new_fast[name] = w - self.inner_lr * g
+        if self.meta_train:
+            self._append_low_rank(state, steps, grads[len(names) :])
         if self.meta_train and self.first_order:
             state.records.append((used, {n: new_fast[n] for n in used}))
         state.fast = new_fast
         state.updates += 1
 
+    def _append_low_rank(
+        self, state: InnerLoopState, steps: list[_Step], grads: tuple[Tensor | None, ...]
+    ) -> None:
+        """Add this inner step's factors of the LSTM matrices' update (``δ`` and ``[x || h]``)."""
+        deltas, inputs = [], []
+        for step, g in zip(steps, grads, strict=True):
+            g = torch.zeros_like(step.gates) if g is None else g
+            deltas.append(_align(g, step.ids, state.ids))
+            inputs.append(_align(step.inputs, step.ids, state.ids))
+        delta, right = torch.stack(deltas, dim=1), torch.stack(inputs, dim=1)
+        if self.first_order:
+            state.factor_records.append((delta, right.detach(), state.ids))
+            delta, right = delta.detach(), right.detach()  # a constant shift for θ_0
+        left = -self.inner_lr * delta
+        state.left = left if state.left is None else torch.cat([state.left, left], dim=1)
+        state.right = right if state.right is None else torch.cat([state.right, right], dim=1)
+        state.chunk = []
+
+    # -- meta-gradient -------------------------------------------------------------------------
     def backward(self, state: InnerLoopState, loss: Tensor) -> None:
         """Accumulate the meta-gradient of the outer ``loss`` (a scalar) into ``.grad`` of θ_0 and φ."""
         if not self.meta_train:
@@ -165,24 +342,77 @@ class InnerLoop:
         phi = set(self.model.learned_loss_parameter_names())
         theta = [(n, p) for n, p in params if n not in phi]
         shifted = [t for _, after in state.records for t in after.values()]
+        later = state.later_steps if state.factor_records else []
         grads = torch.autograd.grad(
-            loss, [p for _, p in theta] + shifted, retain_graph=bool(state.records), allow_unused=True
+            loss,
+            [p for _, p in theta] + shifted + [s.gates for s in later],
+            retain_graph=bool(state.records),
+            allow_unused=True,
         )
         _accumulate([p for _, p in theta], grads[: len(theta)])
         if not state.records:
             return
         # Eq. 4's inner-product term: only φ is differentiated (θ_0's share is the dropped Hessian term).
-        v = iter(grads[len(theta) :])
+        v = iter(grads[len(theta) : len(theta) + len(shifted)])
         inner = loss.new_zeros(())
         for used, _after in state.records:
             for g in used.values():
                 vi = next(v)
                 if vi is not None:
                     inner = inner + (g * vi.detach()).sum()
+        if later:
+            inner = inner + _low_rank_inner_product(state, later, grads[len(theta) + len(shifted) :])
         phi_params = [p for n, p in params if n in phi]
         if inner.requires_grad:
             phi_grads = torch.autograd.grad(-self.inner_lr * inner, phi_params, allow_unused=True)
             _accumulate(phi_params, phi_grads)
+
+
+def _low_rank_inner_product(
+    state: InnerLoopState, later: list[_Step], outer: tuple[Tensor | None, ...]
+) -> Tensor:
+    """``Σ_i <g_i, v_i>`` of the LSTM matrices in factored form: ``g_i = Σ_s δ_s r_sᵀ`` and
+    ``v_i = Σ_{t acted with θ_{i+1} or later} Δ_t r_tᵀ``, so ``<g_i, v_i> = Σ_{s,t} (δ_s·Δ_t)(r_s·r_t)``
+    per episode (rows of different batch sizes are matched through their episode ids)."""
+    total = later[0].gates.new_zeros(())
+    size = state.batch_size
+    outer_d = torch.stack(
+        [
+            _scatter(torch.zeros_like(s.gates) if d is None else d, s.ids, size)
+            for s, d in zip(later, outer, strict=True)
+        ],
+        dim=1,
+    ).detach()
+    outer_r = torch.stack([_scatter(s.inputs.detach(), s.ids, size) for s in later], dim=1)
+    acted = torch.tensor([s.updates for s in later], device=outer_d.device)
+    for i, (delta, right, ids) in enumerate(state.factor_records):
+        after = acted > i  # steps that used θ_{i+1} or a later θ (θ_{j+1} = θ_j - α g_j.detach())
+        if not bool(after.any()):
+            continue
+        deltas = torch.einsum("bso,bto->bst", _scatter(delta, ids, size), outer_d[:, after])
+        inputs = torch.einsum("bsd,btd->bst", _scatter(right, ids, size), outer_r[:, after])
+        total = total + (deltas * inputs).sum()
+    return total
+
+
+def _align(t: Tensor, ids: Tensor, current: Tensor) -> Tensor:
+    """Rows of ``t`` (episodes ``ids``, increasing) for the episodes ``current`` (a subset of ids)."""
+    if len(ids) == len(current):
+        return t
+    return t.index_select(0, torch.searchsorted(ids, current))
+
+
+def _scatter(t: Tensor, ids: Tensor, size: int) -> Tensor:
+    """``t``'s rows placed at ``ids`` in a zero tensor of ``size`` rows (differentiable in ``t``)."""
+    if len(ids) == size:
+        return t
+    return t.new_zeros(size, *t.shape[1:]).index_copy(0, ids, t)
+
+
+def _take_rows(w: Tensor, keep: Tensor) -> Tensor:
+    if w.dim() > 0 and w.stride(0) == 0:  # still the broadcast θ_0: stay a view, copy nothing
+        return w[:1].expand(len(keep), *w.shape[1:])
+    return w.index_select(0, keep)
 
 
 def _accumulate(params: list[Tensor], grads: tuple[Tensor | None, ...]) -> None:

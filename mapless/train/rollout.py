@@ -150,23 +150,15 @@ class Actor:
         it only when :meth:`can_compact`).
 
         Ended episodes never adapt again and their later outputs are masked out of the loss, so
-        dropping them changes nothing for the others. The first-order records keep the full-size
-        tensors: the kept rows are differentiable functions of them."""
-        if self.state is None:
-            return
-        self.state.fast = {name: _take_rows(w, keep) for name, w in self.state.fast.items()}
+        dropping them changes nothing for the others (:meth:`InnerLoop.compact`)."""
+        if self.state is not None:
+            self.inner.compact(self.state, keep)
 
     def backward(self, loss: Tensor) -> None:
         if self.inner is None:
             loss.backward()
         else:
             self.inner.backward(self.state, loss)
-
-
-def _take_rows(w: Tensor, keep: Tensor) -> Tensor:
-    if w.dim() > 0 and w.stride(0) == 0:  # still the broadcast θ_0: stay a view, copy nothing
-        return w[:1].expand(len(keep), *w.shape[1:])
-    return w.index_select(0, keep)
 
 
 def make_actor(model: NavModel, first_order: bool = False) -> Actor:
