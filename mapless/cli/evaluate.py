@@ -25,6 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--select", action="store_true",
                     help="run folders: evaluate every checkpoint on val and report the best by SR (ties SPL) on --split "
                          "(--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
+    ev.add_argument(
+        "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/interop.md)"
+    )
     ev.add_argument("--workers", type=int, default=2)
     ev.add_argument("--batch-size", type=int, default=32)
     ev.add_argument("--seed", type=int, default=0, help="action-sampling seed")
@@ -67,7 +70,10 @@ def _eval(args: argparse.Namespace) -> int:
 
         model_file = resolve_model_file(path)
         cfg = config_of(load_file(model_file))
-        library = LibrarySpec(sim=cfg.env.sim, cache_dir=cfg.env.cache_dir)
+        offline = args.offline_dir or cfg.env.offline_dir
+        library = LibrarySpec(
+            sim=cfg.env.sim, cache_dir=cfg.env.cache_dir, offline_dir=str(offline) if offline else None
+        )
         settings = EvalSettings(**{**settings.__dict__, "category_set": cfg.model.category_set})
         label = cfg.model.name
         spec = AgentSpec(checkpoint=str(model_file))
@@ -78,6 +84,8 @@ def _eval(args: argparse.Namespace) -> int:
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
+    if args.offline_dir and library.offline_dir is None:
+        library = LibrarySpec(offline_dir=str(args.offline_dir))
     episodes = load_episodes(args.split, args.episodes, args.per_room)
     if args.select:
         if not path.is_dir():

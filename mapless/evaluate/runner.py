@@ -269,16 +269,20 @@ def load_model(spec: AgentSpec):
 
 @dataclass(frozen=True)
 class LibrarySpec:
-    """Scene source of the workers: the built-in simulator with ``sim`` (cache in ``cache_dir``), or a
-    ``"module:function"`` factory returning a :class:`SceneLibrary` (tests)."""
+    """Scene source of the workers: the built-in simulator with ``sim`` (cache in ``cache_dir``), a
+    SAVN/MJOLNIR offline data root, or a ``"module:function"`` factory returning a
+    :class:`SceneLibrary` (tests)."""
 
     sim: SimConfig = field(default_factory=SimConfig)
     cache_dir: str | None = None
     factory: str | None = None
+    offline_dir: str | None = None
 
     def build(self) -> SceneLibrary:
         if self.factory is not None:
             return _import(self.factory)()
+        if self.offline_dir is not None:
+            return SceneLibrary.offline(self.offline_dir, self.sim.category_set)
         return SceneLibrary.builtin(self.sim, Path(self.cache_dir) if self.cache_dir else None)
 
 

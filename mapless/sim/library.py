@@ -27,6 +27,13 @@ class SceneLibrary:
         config = config or SimConfig()
         return cls(lambda name: load_or_build(name, config, cache_dir))
 
+    @classmethod
+    def offline(cls, root: str | Path, category_set: str = "mjolnir101") -> SceneLibrary:
+        """Scenes of a SAVN/MJOLNIR offline data root (docs/interop.md)."""
+        from mapless.offline import offline_loader
+
+        return cls(offline_loader(root, category_set=category_set))
+
     def __getitem__(self, scene: str) -> SceneData:
         if scene not in self._scenes:
             self._scenes[scene] = self._loader(scene)

@@ -21,13 +21,15 @@ LibraryFactory = Callable[[], SceneLibrary]
 
 @dataclass(frozen=True)
 class BuiltinLibrary:
-    """Picklable factory of the cached built-in scenes (what ``mapless train`` uses)."""
+    """Picklable factory of the run's scenes: the cached built-in ones, or an offline data root."""
 
     config: TrainConfig
 
     def __call__(self) -> SceneLibrary:
-        cache = Path(self.config.env.cache_dir) if self.config.env.cache_dir else None
-        return SceneLibrary.builtin(self.config.env.sim, cache)
+        env = self.config.env
+        if env.offline_dir:
+            return SceneLibrary.offline(env.offline_dir, env.sim.category_set)
+        return SceneLibrary.builtin(env.sim, Path(env.cache_dir) if env.cache_dir else None)
 
 
 def target_fields(config: TrainConfig) -> TargetFields:

@@ -40,6 +40,8 @@ class EnvConfig:
     step_penalty, success_reward: SAVN's rewards.
     max_steps: training episode limit (30 in both references).
     cache_dir: scene cache folder (None = $MAPLESS_CACHE or ~/.cache/mapless).
+    offline_dir: a SAVN/MJOLNIR offline data root to train on instead of the built-in simulator
+        (docs/interop.md; its 512-channel ResNet maps need ``model.feature_channels=512``).
     sim: simulator parameters (they select the scene cache entry).
     """
 
@@ -51,6 +53,7 @@ class EnvConfig:
     success_reward: float = 5.0
     max_steps: int = TRAIN_MAX_STEPS
     cache_dir: str | None = None
+    offline_dir: str | None = None
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self) -> None:
