@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 
-from mapless.episodes import evalsets
 from mapless.errors import MaplessError
 from mapless.evaluate.selection import PROTOCOLS, best_index, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
@@ -27,7 +26,6 @@ def test_paper_protocol_is_labelled():
     assert "PAPER PROTOCOL" in PROTOCOLS["paper"][2]
 
 
-@pytest.mark.skipif(not evalsets.builtin_path("test").exists(), reason="built-in episode sets not generated")
 def test_builtin_sets_prefix_per_room():
     full = load_episodes("test")
     assert len(full) == 1000 and {split_of(e.scene) for e in full} == {"test"}

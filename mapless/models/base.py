@@ -9,6 +9,7 @@ parameters (the meta-learning inner loop, :mod:`mapless.train.meta`), evaluate t
 
 from __future__ import annotations
 
+import abc
 import math
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
@@ -135,7 +136,7 @@ class NavModel(nn.Module):
         return self.config.graph or str(self.default_graph)
 
 
-class RecurrentNavModel(NavModel):
+class RecurrentNavModel(NavModel, abc.ABC):
     """A model of the form encoder -> ``LSTMCell`` (``self.lstm``) -> actor/critic heads on h.
 
     Subclasses implement :meth:`encode` (and :meth:`value` if the critic sees more than h). The split
@@ -143,11 +144,11 @@ class RecurrentNavModel(NavModel):
     LSTM with shared weights plus low-rank per-episode updates (:mod:`mapless.train.meta`).
     """
 
+    @abc.abstractmethod
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
         """``(LSTM input [B, D], extra critic input or None)``."""
-        raise NotImplementedError
 
     def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
         """Critic ``[B, 1]`` on the new hidden state (and the encoder's extra critic input)."""
