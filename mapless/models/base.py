@@ -174,6 +174,24 @@ def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tu
     return h_next, c_next
 
 
+def shared_row_gcn_layer(
+    adjacency: Tensor, in_view: Tensor, node_features: Tensor, layer: nn.Linear
+) -> Tensor:
+    """``layer(Â · [in_view repeated for every node || node_features])`` -> ``[B, C, out]``, the
+    first layer of MJOLNIR's object GCN, without forming its ``[B, C, C + D]`` input.
+
+    Every node's row starts with the same in-view vector ``v``, so ``Â · [1 vᵀ]`` is
+    ``rowsum(Â) vᵀ``: the layer is ``rowsum(Â) ⊗ (W_v v) + Â · F · W_Fᵀ`` (exact up to rounding),
+    and the second term is shared by the whole batch.
+    """
+    n_view = in_view.shape[-1]
+    weight_view, weight_nodes = layer.weight[:, :n_view], layer.weight[:, n_view:]
+    per_episode = in_view @ weight_view.T  # [B, out]
+    shared = (adjacency @ node_features) @ weight_nodes.T  # [C, out]
+    out = adjacency.sum(-1).unsqueeze(-1) * per_episode.unsqueeze(-2) + shared
+    return out if layer.bias is None else out + layer.bias
+
+
 def tile(vector: Tensor, *spatial: int) -> Tensor:
     """``[B, D]`` -> ``[B, D, *spatial]`` by broadcasting (SAVN tiles embeddings over the 7x7 map)."""
     return vector.reshape(*vector.shape, *([1] * len(spatial))).expand(*vector.shape, *spatial)

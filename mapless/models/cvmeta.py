@@ -31,6 +31,7 @@ from mapless.models.base import (
     glorot_init,
     init_heads_and_lstm,
     normalized_adjacency_parameter,
+    shared_row_gcn_layer,
     tile,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -65,15 +66,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
         """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
-        batch, nodes = in_view.shape
-        x = torch.cat(
-            [
-                in_view.unsqueeze(1).expand(batch, nodes, nodes),
-                self.all_glove.expand(batch, nodes, self.glove_dim),
-            ],
-            dim=-1,
-        )
-        x = F.relu(self.W0(self.A @ x))
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))
         x = F.relu(self.W1(self.A @ x))
         x = F.relu(self.W2(self.A @ x))
         return x.transpose(1, 2)

@@ -24,6 +24,7 @@ from mapless.models.base import (
     context_vector,
     lstm_step,
     normalized_adjacency_parameter,
+    shared_row_gcn_layer,
 )
 
 GCN_EMBEDDING = 512
@@ -41,10 +42,8 @@ class ObjectGcnMixin:
         self.final_mapping = nn.Linear(nodes, GCN_EMBEDDING)
 
     def _object_gcn(self, cm: Tensor) -> Tensor:
-        batch, nodes, _ = cm.shape
-        in_view = cm[..., 0].unsqueeze(1).expand(batch, nodes, nodes)  # every node sees all detections
-        x = torch.cat([in_view, self.all_glove.expand(batch, nodes, self.all_glove.shape[1])], dim=-1)
-        x = F.relu(self.W0(self.A @ x))
+        # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
+        x = F.relu(shared_row_gcn_layer(self.A, cm[..., 0], self.all_glove, self.W0))
         x = F.relu(self.W1(self.A @ x))
         x = F.relu(self.W2(self.A @ x))
         x = F.relu(self.W3(self.A @ torch.cat([x, cm], dim=-1)))
