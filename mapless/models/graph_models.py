@@ -16,7 +16,12 @@ from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
 from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
-from mapless.models.base import ModelConfig, RecurrentNavModel, normalized_adjacency_parameter
+from mapless.models.base import (
+    ModelConfig,
+    RecurrentNavModel,
+    normalized_adjacency_parameter,
+    shared_row_gcn_layer,
+)
 from mapless.models.learned_loss import LearnedLossMixin
 
 GRAPH_EMBEDDING = 512
@@ -37,11 +42,10 @@ class ScenePriorsGraph(nn.Module):
         self.final_mapping = nn.Linear(num_categories, GRAPH_EMBEDDING)
 
     def forward(self, in_view: Tensor) -> Tensor:
-        batch, nodes = in_view.shape
-        class_embed = self.get_class_embed(in_view).unsqueeze(1).expand(batch, nodes, 512)
-        word_embed = self.get_word_embed(self.all_glove).expand(batch, nodes, 512)
-        x = torch.cat([class_embed, word_embed], dim=-1)
-        x = F.relu(self.W0(self.A @ x))
+        # Node features [class embedding (the same for every node) || word embedding of the node].
+        class_embed = self.get_class_embed(in_view)
+        word_embed = self.get_word_embed(self.all_glove)
+        x = F.relu(shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0))
         x = F.relu(self.W1(self.A @ x))
         x = F.relu(self.W2(self.A @ x))
         return self.final_mapping(x.squeeze(-1))
