@@ -287,14 +287,7 @@ def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     ]
     for rec in records:
         lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
-    payload = {
-        "experiment": config.experiment,
-        "config": to_dict(config),
-        "protocol": ev.protocol_label,
-        "models": records,
-    }
-    _write(out, config.experiment, payload, lines)
-    return {"payload": payload, "results": results, "markdown": "\n".join(lines)}
+    return {**_finish(config, ev, out, lines, models=records), "results": results}
 
 
 def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
@@ -331,11 +324,16 @@ def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         config, "Table 2: generalisation across room types (train on one, test on all)", ev, command
     )
     lines += [markdown(header, rows), ""]
+    return _finish(config, ev, out, lines, runs=records)
+
+
+def _finish(config: ExperimentConfig, ev: Evaluator, out: Path, lines: list[str], **results) -> dict:
+    """Write the experiment's JSON and markdown report; return both."""
     payload = {
         "experiment": config.experiment,
         "config": to_dict(config),
         "protocol": ev.protocol_label,
-        "runs": records,
+        **results,
     }
     _write(out, config.experiment, payload, lines)
     return {"payload": payload, "markdown": "\n".join(lines)}
@@ -384,14 +382,7 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         model_table(records),
         "",
     ]
-    payload = {
-        "experiment": config.experiment,
-        "config": to_dict(config),
-        "protocol": ev.protocol_label,
-        "models": records,
-    }
-    _write(out, config.experiment, payload, lines)
-    return {"payload": payload, "markdown": "\n".join(lines)}
+    return _finish(config, ev, out, lines, models=records)
 
 
 def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:

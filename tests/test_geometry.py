@@ -77,7 +77,8 @@ def test_occluded_object_is_not_in_view_and_partial_occlusion_shrinks_its_box():
     scene = square_room([front, hidden], half_width=4)
     data = build_scene_data(scene, CONFIG)
     pose = data.pose_index["0.00|0.00|0|0"]
-    assert 1 not in data.in_view(pose)
+    apple = scene.object_index["Apple|1"]
+    assert apple not in data.in_view(pose)
     # Half-occluded: the blocker covers x < 0 only; the far box spans x in [-0.5, 0.5].
     blocker = box("Cab|1", "Cabinet", (-1.0, h, 1.0), (2.0, 2.0, 0.2))
     far = box("Fridge|1", "Fridge", (0, h, 3.0), (1.0, 1.0, 0.2))
@@ -85,8 +86,9 @@ def test_occluded_object_is_not_in_view_and_partial_occlusion_shrinks_its_box():
     pose = data.pose_index["0.00|0.00|0|0"]
     entries = slice(data.view_ptr[pose], data.view_ptr[pose + 1])
     boxes = dict(zip(data.view_instance[entries].tolist(), data.view_box[entries], strict=True))
-    assert 1 in boxes
-    x1, _, x2, _ = boxes[1]
+    fridge = 1  # index of the far box in the scene's object list
+    assert fridge in boxes
+    x1, _, x2, _ = boxes[fridge]
     # Unoccluded it would span 150 +- 0.5/2.9*150 = [124, 176]; the left half is hidden behind x < 0.
     assert x1 >= 150 - 300 / 84 and x2 == pytest.approx(176, abs=4)
 
@@ -116,7 +118,8 @@ def test_contents_of_closed_receptacles_are_never_visible_but_open_shelves_show_
     vase = box("Vase|1", "Vase", (0, h, 0.95), (0.2, 0.2, 0.2), pickupable=True, parents=("Shelf|1",))
     data = build_scene_data(square_room([shelf, vase], half_width=3), CONFIG)
     pose = data.pose_index["0.00|0.00|0|0"]
-    assert 1 in data.visible(pose).tolist()
+    vase_index = 1
+    assert vase_index in data.visible(pose).tolist()
 
 
 def test_transitions_diagonal_moves_walls_and_obstacles():
