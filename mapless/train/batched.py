@@ -197,16 +197,7 @@ class BatchedTrainer:
         """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
         cfg = self.config
         self._setup(resume)
-        monitor = RunMonitor(
-            self.run_dir,
-            cfg.log_every,
-            cfg.episodes,
-            cfg.frames,
-            self.counters["episodes"],
-            self.counters["frames"],
-            progress=cfg.progress,
-            description=f"{cfg.model.name} batched",
-        )
+        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "batched")
         start, start_frames = time.perf_counter(), self.counters["frames"]
         self._clock, self._out_of_time = start, False
         first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)

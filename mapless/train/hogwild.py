@@ -237,16 +237,7 @@ class AsyncTrainer:
             self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
         self.model.share_memory()
         self.optimizer.share_memory()
-        monitor = RunMonitor(
-            self.run_dir,
-            cfg.log_every,
-            cfg.episodes,
-            cfg.frames,
-            self.counters["episodes"],
-            self.counters["frames"],
-            progress=cfg.progress,
-            description=f"{cfg.model.name} async",
-        )
+        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "async")
         start, start_frames = time.perf_counter(), self.counters["frames"]
         self._clock = start
         first: tuple[float, int] | None = None  # (time, frames) of the first finished episode

@@ -33,6 +33,20 @@ METRICS_FILE = "metrics.jsonl"
 
 
 class RunMonitor:
+    @classmethod
+    def for_run(cls, run_dir: Path | None, config, counters: dict[str, int], mode: str) -> RunMonitor:
+        """The monitor of a trainer with ``config`` (a TrainConfig), resuming at ``counters``."""
+        return cls(
+            run_dir,
+            config.log_every,
+            config.episodes,
+            config.frames,
+            counters["episodes"],
+            counters["frames"],
+            progress=config.progress,
+            description=f"{config.model.name} {mode}",
+        )
+
     def __init__(
         self,
         run_dir: Path | None,
