@@ -7,6 +7,9 @@ import os
 import shutil
 import tempfile
 
+import pytest
+import torch
+
 _SESSION_CACHE: str | None = None
 
 # The live AI2-THOR tests need the Unity build (a download) and a display: opt-in only.
@@ -23,3 +26,12 @@ def pytest_configure(config) -> None:
 def pytest_unconfigure(config) -> None:
     if _SESSION_CACHE is not None:
         shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def single_torch_thread():
+    """Single-threaded torch, as in the spawn workers: two threads on a busy 2-core machine crawl."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

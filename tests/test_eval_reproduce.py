@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from mapless.cli import main
 from mapless.episodes import evalsets
@@ -21,14 +20,7 @@ from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Single-threaded torch, as in the spawn workers: two threads on a busy 2-core machine crawl."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 def make_episodes(library: SceneLibrary, scene: str, n: int, seed: int) -> list[Episode]:

@@ -27,13 +27,7 @@ from mapless.sim.vector import BatchedNavEnv
 LIBRARY = LibrarySpec(factory="eval_fixtures:fixture_library")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Single-threaded torch, as in the spawn workers: two threads on a busy 2-core machine crawl."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -361,13 +361,10 @@ def load_offline_scene(
     )
     scene, room = _scene_and_room(folder, side, room_type)
     agent_y = grid[0].get("y")
-    return SceneData(
+    return SceneData.from_poses(
+        poses,
         scene=scene,
         room_type=room,
-        x=poses[:, 0].astype(np.float32),
-        z=poses[:, 1].astype(np.float32),
-        yaw=poses[:, 2].astype(np.int16),
-        horizon=poses[:, 3].astype(np.int16),
         successors=successors,
         instance_ids=instance_ids,
         instance_types=instance_types,

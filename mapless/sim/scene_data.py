@@ -59,6 +59,17 @@ class SceneData:
     meta: dict = field(default_factory=dict)
     _distance_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
+    @classmethod
+    def from_poses(cls, poses: np.ndarray, **fields) -> SceneData:
+        """Build from a ``[P, 4]`` array of ``(x, z, yaw, horizon)`` rows plus the other fields."""
+        return cls(
+            x=poses[:, 0].astype(np.float32),
+            z=poses[:, 1].astype(np.float32),
+            yaw=poses[:, 2].astype(np.int16),
+            horizon=poses[:, 3].astype(np.int16),
+            **fields,
+        )
+
     @property
     def n_poses(self) -> int:
         return len(self.x)

@@ -422,13 +422,10 @@ def scrape_scene(
         room = room_type_of(scene)
     except MaplessError:
         room = "unknown"
-    return SceneData(
+    return SceneData.from_poses(
+        poses,
         scene=scene,
         room_type=room,
-        x=poses[:, 0].astype(np.float32),
-        z=poses[:, 1].astype(np.float32),
-        yaw=poses[:, 2].astype(np.int16),
-        horizon=poses[:, 3].astype(np.int16),
         successors=successors,
         instance_ids=table.ids,
         instance_types=table.types,
