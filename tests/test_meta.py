@@ -64,7 +64,7 @@ def batched_run(model, loop, obs, actions, rewards, lengths):
 def hand_run(model, obs, actions, rewards, lengths, max_updates, create_graph=True):
     """Per episode, plain autograd: θ as a dict, SAVN's name rule, one grad call per inner step."""
     theta0 = {n: p for n, p in model.named_parameters() if p.requires_grad}
-    names = [n for n in theta0 if "ll" not in n]  # SAVN: every name without "ll" is adapted
+    names = model.inner_parameter_names()  # cvmeta: the policy network only (tests/test_models.py)
     total, all_logits, records = 0.0, [], []
     for b, n in enumerate(lengths):
         theta = {name: theta0[name] for name in names}
@@ -115,9 +115,10 @@ def test_inner_loop_equals_hand_unrolled_second_order(name):
     model, knowledge = make_model(name)
     lengths = [7, 4]  # episode 1 ends at step 4: no second update for it
     obs, actions, rewards = make_episodes(knowledge, 7)
-    state, logits, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, lengths)
+    loop = InnerLoop(model)
+    state, logits, loss = batched_run(model, loop, obs, actions, rewards, lengths)
     assert state.updates == 2
-    loss.backward()
+    loop.backward(state, loss)
     batched = grads_of(model)
     model.zero_grad(set_to_none=True)
     hand_loss, hand_logits, records = hand_run(model, obs, actions, rewards, lengths, 2)
@@ -140,16 +141,18 @@ def test_inner_loop_equals_hand_unrolled_second_order(name):
 def test_phi_gets_gradient_only_through_the_inner_step():
     model, knowledge = make_model()
     obs, actions, rewards = make_episodes(knowledge, K - 1)  # shorter than k: no inner step at all
-    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, [K - 1, K - 1])
-    loss.backward()
+    loop = InnerLoop(model)
+    state, _, loss = batched_run(model, loop, obs, actions, rewards, [K - 1, K - 1])
+    loop.backward(state, loss)
     assert all(p.grad is None for n, p in model.named_parameters() if n.startswith("ll_"))
     assert model.lstm.weight_ih.grad.abs().sum() > 0
 
     # With α = 0 the inner step is the identity and φ's meta-gradient vanishes exactly.
     model, knowledge = make_model(inner_lr=0.0)
     obs, actions, rewards = make_episodes(knowledge, 5)
-    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, [5, 5])
-    loss.backward()
+    loop = InnerLoop(model)
+    state, _, loss = batched_run(model, loop, obs, actions, rewards, [5, 5])
+    loop.backward(state, loss)
     assert all(p.grad.abs().max() == 0 for n, p in model.named_parameters() if n.startswith("ll_"))
 
 
@@ -157,8 +160,9 @@ def test_first_order_differs_from_second_order_by_the_hessian_term():
     lengths = [5, 5]  # one inner step (after step 3), then two adapted steps
     model, knowledge = make_model(max_updates=1)
     obs, actions, rewards = make_episodes(knowledge, 5, seed=3)
-    _, _, loss = batched_run(model, InnerLoop(model), obs, actions, rewards, lengths)
-    loss.backward()
+    loop = InnerLoop(model)
+    state, _, loss = batched_run(model, loop, obs, actions, rewards, lengths)
+    loop.backward(state, loss)
     second = grads_of(model)
     model.zero_grad(set_to_none=True)
     loop = InnerLoop(model, first_order=True)

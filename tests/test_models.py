@@ -6,6 +6,7 @@ import pytest
 import torch
 from torch.func import functional_call
 
+from mapless.config import ConfigError
 from mapless.errors import UnknownNameError
 from mapless.knowledge import normalize_adjacency, synthetic_knowledge
 from mapless.models import ModelConfig, build_model, context_vector, count_parameters, model_names
@@ -198,7 +199,7 @@ def test_graphs_per_model():
 def test_inner_step_skips_only_parameters_the_learned_loss_cannot_reach(tiny):
     for name in ["savn", "gve", "spatt", "cvmeta"]:
         torch.manual_seed(0)
-        model = build_model(name, knowledge=tiny, hidden_size=16, interaction_steps=2).eval()
+        model = build_model(name, knowledge=tiny, hidden_size=16, interaction_steps=2, adapt="all").eval()
         savn_rule = [n for n, p in model.named_parameters() if p.requires_grad and "ll" not in n]
         skipped = sorted(set(savn_rule) - set(model.inner_parameter_names()))
         assert all(n.startswith(("critic_linear", "gve.")) for n in skipped), (name, skipped)
@@ -251,3 +252,18 @@ def test_cli_lists_models_with_reference_counts(capsys):
     assert list(lines) == ALL
     assert "7,577,491" in lines["a3c"] and "8,115,539" in lines["savn"]
     assert "3,558,001" in lines["mjolnir_o"] and "3,588,301" in lines["mjolnir_o"]
+
+
+def test_policy_adaptation_keeps_the_encoders_fixed(tiny):
+    cvmeta = build_model("cvmeta", knowledge=tiny, hidden_size=16, interaction_steps=2)
+    assert cvmeta.config.adapt is None and cvmeta.default_adapt == "policy"
+    names = cvmeta.inner_parameter_names()
+    assert {"lstm.weight_ih", "lstm.weight_hh", "pointwise.weight", "actor_linear.weight"} <= set(names)
+    assert not any(n.startswith(("W0", "W1", "W2", "A", "context_embed", "embed_glove")) for n in names)
+    everything = build_model("cvmeta", knowledge=tiny, hidden_size=16, interaction_steps=2, adapt="all")
+    assert {"W0.weight", "A", "context_embed.weight"} <= set(everything.inner_parameter_names())
+    savn = build_model("savn", knowledge=tiny, hidden_size=16, interaction_steps=2, adapt="policy")
+    assert "conv1.weight" not in savn.inner_parameter_names()
+    assert "pointwise.weight" in savn.inner_parameter_names()
+    with pytest.raises(ConfigError, match=r"model\.adapt"):
+        ModelConfig(name="cvmeta", adapt="encoders")

@@ -34,6 +34,10 @@ class ModelOutput(NamedTuple):
     hidden: tuple[Tensor, Tensor]
 
 
+#: What the meta-learning inner step may adapt (:attr:`ModelConfig.adapt`).
+ADAPT_MODES = ("all", "policy")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Typed construction arguments of every registered model (fields a model does not use are ignored).
@@ -50,6 +54,10 @@ class ModelConfig:
     inner_lr: inner-loop SGD rate of adaptive models; None = the model's default.
     interaction_steps: k, the rows of the learned interaction loss (SAVN's 6; the TCN's input channels).
     max_inner_updates: inner SGD steps per episode (SAVN's ``--gradient_limit`` 4).
+    adapt: what the inner step adapts: ``all`` (SAVN's rule: every parameter outside the learned loss)
+        or ``policy`` (θ of the paper's eq. 1-3, ``a_t ~ π(φ(s_t; v), ψ(g; u); θ)``: the fusion, the
+        previous-action embedding, LSTM and actor, while the state and target encoders v, u stay
+        fixed); None = the model's default (cvmeta: policy, the others: all).
     fusion_channels: output channels of cvmeta's pointwise fusion per category.
     reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
         ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
@@ -68,6 +76,13 @@ class ModelConfig:
     max_inner_updates: int = 4
     fusion_channels: int = 32
     reference_extras: bool = False
+    adapt: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.adapt not in (None, *ADAPT_MODES):
+            from mapless.config import ConfigError
+
+            raise ConfigError(f"config key 'model.adapt': {self.adapt!r} is not one of {ADAPT_MODES}")
 
 
 class NavModel(nn.Module):
@@ -76,6 +91,10 @@ class NavModel(nn.Module):
     #: Inner-loop learning rate when the model adapts at test time (None: not adaptive).
     default_inner_lr: ClassVar[float | None] = None
     default_graph: ClassVar[str | None] = None
+    default_adapt: ClassVar[str] = "all"
+    #: θ of the paper's eq. 1 (the policy network on top of the state and target encoders), the
+    #: inner step's parameters under ``adapt: policy``.
+    policy_prefixes: ClassVar[tuple[str, ...]] = ("embed_action.", "pointwise.", "lstm.", "actor_linear.")
     description: ClassVar[str] = ""
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
@@ -121,13 +140,17 @@ class NavModel(nn.Module):
     def inner_parameter_names(self) -> list[str]:
         """θ adapted by the inner SGD step: SAVN's rule (every trainable parameter whose name does not
         contain ``ll``) minus parameters the learned loss cannot reach (critic, dead modules, GVE's
-        graph), which SAVN "adapts" with a None gradient, i.e. leaves unchanged."""
+        graph), which SAVN "adapts" with a None gradient, i.e. leaves unchanged; under
+        ``adapt: policy`` only those of them under :attr:`policy_prefixes`."""
         unreachable = self._inner_unreachable_prefixes()
-        return [
+        names = [
             n
             for n, p in self.named_parameters()
             if p.requires_grad and "ll" not in n and not n.startswith(unreachable)
         ]
+        if (self.config.adapt or self.default_adapt) == "policy":
+            names = [n for n in names if n.startswith(self.policy_prefixes)]
+        return names
 
     def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
         return ("critic_linear.", "action_predict_linear.")
@@ -168,6 +191,11 @@ def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tu
     per-episode weights and under functional_call."""
     h, c = hidden
     gates = F.linear(x, cell.weight_ih, cell.bias_ih) + F.linear(h, cell.weight_hh, cell.bias_hh)
+    return lstm_state_from_gates(gates, c)
+
+
+def lstm_state_from_gates(gates: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """``(h', c')`` from the gate pre-activations ``[B, 4H]`` (order i, f, g, o) and the cell state."""
     i, f, g, o = gates.chunk(4, dim=-1)
     c_next = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
     h_next = torch.sigmoid(o) * torch.tanh(c_next)

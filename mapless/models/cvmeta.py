@@ -43,6 +43,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     )
     default_graph = "hierarchical"
     default_inner_lr = 1e-3  # the paper: "an inner learning rate of 0.001"
+    # The paper's meta-objective (eq. 3) adapts θ of a_t ~ π(φ(s_t; v), ψ(g; u); θ), not the encoders.
+    default_adapt = "policy"
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

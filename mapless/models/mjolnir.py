@@ -19,10 +19,8 @@ from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
 from mapless.models.base import (
     NUM_ACTIONS,
     ModelConfig,
-    ModelOutput,
-    NavModel,
+    RecurrentNavModel,
     context_vector,
-    lstm_step,
     normalized_adjacency_parameter,
     shared_row_gcn_layer,
 )
@@ -50,7 +48,7 @@ class ObjectGcnMixin:
         return self.final_mapping(x.squeeze(-1))
 
 
-class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
+class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_O: context matrix + object GCN + previous policy -> LSTM(5C + 522)"
     default_graph = "vg"
 
@@ -60,17 +58,15 @@ class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self._finish_init(5 * self.num_categories + 10 + GCN_EMBEDDING)
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
+    ) -> tuple[Tensor, Tensor | None]:
         cm = context_vector(obs, self.all_glove)
         action = F.relu(self.embed_action(prev_policy))
-        x = torch.cat([cm.flatten(1), action, self._object_gcn(cm)], dim=1)
-        h, c = lstm_step(x, hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+        return torch.cat([cm.flatten(1), action, self._object_gcn(cm)], dim=1), None
 
 
-class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
+class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_R: SAVN embedding || object GCN -> LSTM(3648)"
     default_graph = "vg"
 
@@ -84,10 +80,8 @@ class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, NavModel):
             self.resnet18 = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Linear(512, 1000))
             self.resnet18.requires_grad_(False)
 
-    def forward(
+    def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
+    ) -> tuple[Tensor, Tensor | None]:
         cm = context_vector(obs, self.all_glove)
-        x = torch.cat([self._base_embedding(obs, prev_policy), self._object_gcn(cm)], dim=1)
-        h, c = lstm_step(x, hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.critic_linear(h), (h, c))
+        return torch.cat([self._base_embedding(obs, prev_policy), self._object_gcn(cm)], dim=1), None

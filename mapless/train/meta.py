@@ -53,7 +53,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
-from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel
+from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 #: LSTM matrices whose per-episode updates are kept in low rank during meta-training.
 LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
@@ -93,8 +94,8 @@ class InnerLoopState:
     #: the first inner step (their Δ_t = ∂L_nav/∂gates_t give v_i in :meth:`InnerLoop.backward`).
     factor_records: list[tuple[Tensor, Tensor, Tensor]] = field(default_factory=list)
     later_steps: list[_Step] = field(default_factory=list)
-    #: training: θ_0's LSTM matrices transposed into contiguous ``[D, 4H]`` / ``[H, 4H]`` copies.
-    weights_t: tuple[Tensor, Tensor] | None = None
+    #: training: θ_0's LSTM matrices for this rollout (their gradient is computed once, at the end).
+    lstm: RolloutLstm | None = None
 
 
 class _Encoder(nn.Module):
@@ -161,13 +162,9 @@ class InnerLoop:
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape)
         if not self.meta_train:
             return InnerLoopState(fast=fast)
-        # One differentiable transposed copy per rollout, shared by every step. With F.linear's
-        # per-step transposed views, the forward uses and the inner steps' backward uses of a matrix
-        # produce gradients of different memory layouts, and profiles showed autograd summing those
-        # full-size (6.5M-entry) gradients with slow strided adds; row-major uses avoid that.
-        weights_t = tuple(params[n].t().contiguous() for n in LOW_RANK)
-        ids = torch.arange(batch_size, device=weights_t[0].device)
-        return InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, weights_t=weights_t)
+        lstm = RolloutLstm(self.model.lstm)
+        ids = torch.arange(batch_size, device=lstm.weight.device)
+        return InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
 
     def forward(
         self,
@@ -217,20 +214,12 @@ class InnerLoop:
 
         # The LSTM cell of base.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
         h_prev, c_prev = hidden
-        weight_ih_t, weight_hh_t = state.weights_t
-        inputs = torch.cat([x, h_prev], dim=-1)
-        gates = (
-            x @ weight_ih_t
-            + h_prev @ weight_hh_t
-            + self._param(state, "lstm.bias_ih")
-            + self._param(state, "lstm.bias_hh")
-        )
+        inputs, product = state.lstm.gates(x, h_prev)
+        gates = product + self._param(state, "lstm.bias_ih") + self._param(state, "lstm.bias_hh")
         if state.left is not None:
             coefficients = torch.einsum("bkd,bd->bk", state.right, inputs)
             gates = gates + torch.einsum("bk,bko->bo", coefficients, state.left)
-        i, f, g, o = gates.chunk(4, dim=-1)
-        c = torch.sigmoid(f) * c_prev + torch.sigmoid(i) * torch.tanh(g)
-        h = torch.sigmoid(o) * torch.tanh(c)
+        h, c = lstm_state_from_gates(gates, c_prev)
 
         weight = self._param(state, "actor_linear.weight")
         if weight.dim() == 3:
@@ -335,21 +324,18 @@ class InnerLoop:
         """Accumulate the meta-gradient of the outer ``loss`` (a scalar) into ``.grad`` of θ_0 and φ."""
         if not self.meta_train:
             raise RuntimeError("backward() needs an InnerLoop built with meta_train=True")
-        if not self.first_order:
-            loss.backward()
-            return
         params = [(n, p) for n, p in self.model.named_parameters() if p.requires_grad]
+        if not self.first_order:
+            accumulate_grad([p for _, p in params], state.lstm.grad(loss, [p for _, p in params]))
+            return
         phi = set(self.model.learned_loss_parameter_names())
         theta = [(n, p) for n, p in params if n not in phi]
         shifted = [t for _, after in state.records for t in after.values()]
         later = state.later_steps if state.factor_records else []
-        grads = torch.autograd.grad(
-            loss,
-            [p for _, p in theta] + shifted + [s.gates for s in later],
-            retain_graph=bool(state.records),
-            allow_unused=True,
+        grads = state.lstm.grad(
+            loss, [p for _, p in theta] + shifted + [s.gates for s in later], retain_graph=bool(state.records)
         )
-        _accumulate([p for _, p in theta], grads[: len(theta)])
+        accumulate_grad([p for _, p in theta], grads[: len(theta)])
         if not state.records:
             return
         # Eq. 4's inner-product term: only φ is differentiated (θ_0's share is the dropped Hessian term).
@@ -365,7 +351,7 @@ class InnerLoop:
         phi_params = [p for n, p in params if n in phi]
         if inner.requires_grad:
             phi_grads = torch.autograd.grad(-self.inner_lr * inner, phi_params, allow_unused=True)
-            _accumulate(phi_params, phi_grads)
+            accumulate_grad(phi_params, phi_grads)
 
 
 def _low_rank_inner_product(
@@ -413,10 +399,3 @@ def _take_rows(w: Tensor, keep: Tensor) -> Tensor:
     if w.dim() > 0 and w.stride(0) == 0:  # still the broadcast θ_0: stay a view, copy nothing
         return w[:1].expand(len(keep), *w.shape[1:])
     return w.index_select(0, keep)
-
-
-def _accumulate(params: list[Tensor], grads: tuple[Tensor | None, ...]) -> None:
-    for p, g in zip(params, grads, strict=True):
-        if g is None:
-            continue
-        p.grad = g.detach().clone() if p.grad is None else p.grad + g.detach()

@@ -22,12 +22,13 @@ import torch
 from torch import Tensor
 
 from mapless.episodes.episode import Episode
-from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
 from mapless.train.config import LossConfig
 from mapless.train.meta import InnerLoop, InnerLoopState
+from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 OBS_KEYS = ("context", "features", "target_embedding", "target_index")
 
@@ -116,24 +117,37 @@ class Trajectory:
 class Actor:
     """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop.
 
-    :meth:`compact` drops ended episodes from the batch being stepped, so neither the forward pass
-    nor the per-episode fast weights are computed for finished episodes.
+    Both run the model's LSTM through a :class:`~mapless.train.rollout_lstm.RolloutLstm` (one weight
+    gradient per rollout instead of one per step). :meth:`compact` drops ended episodes from the
+    batch being stepped, so neither the forward pass nor the per-episode fast weights are computed
+    for finished episodes.
     """
 
     def __init__(self, model: NavModel, inner: InnerLoop | None):
         self.model = model
         self.inner = inner
         self.state: InnerLoopState | None = None
+        self.lstm: RolloutLstm | None = None
 
     def start(self, batch_size: int) -> None:
         self.state = self.inner.start(batch_size) if self.inner is not None else None
+        if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
+            self.lstm = RolloutLstm(self.model.lstm)
+        else:
+            self.lstm = None
 
     def forward(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> ModelOutput:
-        if self.inner is None:
+        if self.inner is not None:
+            return self.inner.forward(self.state, obs, hidden, prev_policy)
+        if self.lstm is None:
             return self.model(obs, hidden, prev_policy)
-        return self.inner.forward(self.state, obs, hidden, prev_policy)
+        model, cell = self.model, self.model.lstm
+        x, critic_input = model.encode(obs, hidden, prev_policy)
+        _, product = self.lstm.gates(x, hidden[0])
+        h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
+        return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
 
     def can_compact(self) -> bool:
         """Plain models: always. Adaptive models: only between interaction chunks, because the next
@@ -155,10 +169,22 @@ class Actor:
             self.inner.compact(self.state, keep)
 
     def backward(self, loss: Tensor) -> None:
-        if self.inner is None:
-            loss.backward()
-        else:
+        """Accumulate the gradient (adaptive models: the meta-gradient) of ``loss`` into ``.grad``."""
+        if self.inner is not None:
             self.inner.backward(self.state, loss)
+        else:
+            params = [p for p in self.model.parameters() if p.requires_grad]
+            accumulate_grad(params, self.gradients(loss, params))
+
+    def gradients(
+        self, loss: Tensor, params: list[Tensor], retain_graph: bool = False
+    ) -> tuple[Tensor | None, ...]:
+        """``torch.autograd.grad(loss, params, allow_unused=True)`` of this rollout, the deferred LSTM
+        matrix gradients included (for adaptive models: the second-order meta-gradient)."""
+        lstm = self.state.lstm if self.state is not None else self.lstm
+        if lstm is None:
+            return torch.autograd.grad(loss, params, retain_graph=retain_graph, allow_unused=True)
+        return lstm.grad(loss, params, retain_graph)
 
 
 def make_actor(model: NavModel, first_order: bool = False) -> Actor:

@@ -1,0 +1,107 @@
+"""The LSTM cell of one training rollout, with the gradient of its two weight matrices computed once.
+
+Autograd differentiates ``gates_t = [x_t || h_{t-1}] W`` separately at every step t of a rollout:
+one full-size gradient of W (4H x (D + H), 8M entries for SAVN's 3136-input LSTM) per step, summed
+as it goes. Those memory-bound products and sums were over half of a batched meta-training update
+in profiles. The gradient is ``Σ_t [x_t || h_{t-1}]ᵀ Δ_t`` with ``Δ_t = ∂L/∂gates_t``, i.e. one
+matrix product of the stacked step inputs and gate gradients, so :class:`RolloutLstm`
+
+* multiplies by W with a matmul whose backward passes gradient to the inputs only,
+* records every step's input row ``[x_t || h_{t-1}]`` and product, and
+* in :meth:`RolloutLstm.grad` asks autograd for the products' gradients ``Δ_t`` alongside the other
+  parameters' and adds ``Δᵀ [x || h]`` to the gradients of ``weight_ih`` and ``weight_hh``.
+
+Second-order meta-gradients stay exact: an inner step taken with ``create_graph=True`` multiplies by
+W again in its backward (``g Wᵀ``); that product is recorded the same way, and its share of W's
+gradient joins the same single product. The values and gradients are those of ``nn.LSTMCell`` up to
+the floating-point summation order (tests/test_meta.py compares them with hand-unrolled autograd).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+
+class _DeferredWeightMatmul(torch.autograd.Function):
+    """``rows @ weight`` (``rows @ weight.T`` when ``transpose``) whose backward returns the rows'
+    gradient only; the weight's is added up later from ``record`` (see :class:`RolloutLstm`)."""
+
+    @staticmethod
+    def forward(ctx, rows: Tensor, weight: Tensor, transpose: bool, record: list) -> Tensor:
+        ctx.save_for_backward(weight)
+        ctx.transpose, ctx.record = transpose, record
+        return rows @ (weight.T if transpose else weight)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None]:
+        (weight,) = ctx.saved_tensors
+        # The rows' gradient is a product with the same weight. Under create_graph (an inner step
+        # of second-order meta-learning) it is itself recorded, so the outer backward can defer the
+        # weight gradient of this use too; otherwise nothing will differentiate it again.
+        if torch.is_grad_enabled():
+            return _deferred_matmul(grad, weight, not ctx.transpose, ctx.record), None, None, None
+        return grad @ (weight if ctx.transpose else weight.T), None, None, None
+
+
+def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, record: list) -> Tensor:
+    out = _DeferredWeightMatmul.apply(rows, weight, transpose, record)
+    record.append((rows.detach(), out, transpose))
+    return out
+
+
+class RolloutLstm:
+    """``cell``'s matrices for one rollout (create one per batch of episodes)."""
+
+    def __init__(self, cell: nn.LSTMCell):
+        self.cell = cell
+        # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row).
+        self.weight = torch.cat([cell.weight_ih, cell.weight_hh], dim=1).t().contiguous().detach()
+        #: every product with the weight: (its left factor, the product, transposed?)
+        self.records: list[tuple[Tensor, Tensor, bool]] = []
+
+    def gates(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+        """``([x || h], [x || h] · Wᵀ)``: the step's input row and its gate pre-activations before the
+        biases (the caller adds biases and any per-episode terms; their sum has the same gradient)."""
+        inputs = torch.cat([x, h], dim=-1)
+        return inputs, _deferred_matmul(inputs, self.weight, False, self.records)
+
+    def grad(
+        self,
+        loss: Tensor,
+        inputs: list[Tensor],
+        retain_graph: bool = False,
+    ) -> tuple[Tensor | None, ...]:
+        """``torch.autograd.grad(loss, inputs, allow_unused=True)`` with the deferred gradient of the
+        cell's ``weight_ih`` / ``weight_hh`` added where they appear in ``inputs``.
+
+        A product ``r W`` (r in the D + H input space) contributes ``(∂L/∂(rW))ᵀ r`` to W; a
+        transposed one ``g Wᵀ`` (an inner step's backward, g in the 4H gate space) contributes
+        ``gᵀ ∂L/∂(gWᵀ)``: both are (gate-space)ᵀ (input-space) pairs, summed in one product."""
+        products = [out for _, out, _ in self.records]
+        grads = torch.autograd.grad(loss, [*inputs, *products], retain_graph=retain_graph, allow_unused=True)
+        grads, outer = list(grads[: len(inputs)]), grads[len(inputs) :]
+        gate_side, input_side = [], []
+        for (rows, _, transpose), g in zip(self.records, outer, strict=True):
+            if g is not None:
+                gate_side.append(rows if transpose else g)
+                input_side.append(g if transpose else rows)
+        if not gate_side:
+            return tuple(grads)
+        full = torch.cat(gate_side).T @ torch.cat(input_side)  # [4H, D + H]
+        split = self.cell.weight_ih.shape[1]
+        for parameter, part in (
+            (self.cell.weight_ih, full[:, :split]),
+            (self.cell.weight_hh, full[:, split:]),
+        ):
+            for i, tensor in enumerate(inputs):
+                if tensor is parameter:
+                    grads[i] = part.contiguous() if grads[i] is None else grads[i] + part
+        return tuple(grads)
+
+
+def accumulate_grad(params: list[Tensor], grads: tuple[Tensor | None, ...]) -> None:
+    """Add ``grads`` into ``.grad`` as ``Tensor.backward`` would (None: no gradient)."""
+    for p, g in zip(params, grads, strict=True):
+        if g is not None:
+            p.grad = g.detach().clone() if p.grad is None else p.grad + g.detach()
