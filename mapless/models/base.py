@@ -205,8 +205,8 @@ def lstm_state_from_gates(gates: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
 def shared_row_gcn_layer(
     adjacency: Tensor, in_view: Tensor, node_features: Tensor, layer: nn.Linear
 ) -> Tensor:
-    """``layer(Â · [in_view repeated for every node || node_features])`` -> ``[B, C, out]``, the
-    first layer of MJOLNIR's object GCN, without forming its ``[B, C, C + D]`` input.
+    """``layer(Â · [in_view repeated for every node || node_features])``, node-major ``[C, B, out]``:
+    the first layer of MJOLNIR's object GCN, without forming its ``[B, C, C + D]`` input.
 
     Every node's row starts with the same in-view vector ``v``, so ``Â · [1 vᵀ]`` is
     ``rowsum(Â) vᵀ``: the layer is ``rowsum(Â) ⊗ (W_v v) + Â · F · W_Fᵀ`` (exact up to rounding),
@@ -216,8 +216,17 @@ def shared_row_gcn_layer(
     weight_view, weight_nodes = layer.weight[:, :n_view], layer.weight[:, n_view:]
     per_episode = in_view @ weight_view.T  # [B, out]
     shared = (adjacency @ node_features) @ weight_nodes.T  # [C, out]
-    out = adjacency.sum(-1).unsqueeze(-1) * per_episode.unsqueeze(-2) + shared
+    out = adjacency.sum(-1)[:, None, None] * per_episode.unsqueeze(0) + shared.unsqueeze(1)
     return out if layer.bias is None else out + layer.bias
+
+
+def propagate(adjacency: Tensor, x: Tensor) -> Tensor:
+    """``Â · X`` of node-major features ``[C, B, F]``: one matrix product with no transposes.
+
+    The GCNs keep their activations node-major because both of their products are then plain
+    matrix products (``Â`` on the left of ``[C, B·F]``, ``W`` on the right of ``[C·B, F]``); the
+    batch-major layout made every ``Â ·`` a transpose copy and a batched product."""
+    return (adjacency @ x.reshape(x.shape[0], -1)).reshape(x.shape)
 
 
 def tile(vector: Tensor, *spatial: int) -> Tensor:

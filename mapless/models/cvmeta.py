@@ -31,6 +31,7 @@ from mapless.models.base import (
     glorot_init,
     init_heads_and_lstm,
     normalized_adjacency_parameter,
+    propagate,
     shared_row_gcn_layer,
     tile,
 )
@@ -68,10 +69,10 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
         """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
-        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))
-        x = F.relu(self.W1(self.A @ x))
-        x = F.relu(self.W2(self.A @ x))
-        return x.transpose(1, 2)
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
+        x = F.relu(self.W1(propagate(self.A, x)))
+        x = F.relu(self.W2(propagate(self.A, x)))  # [C, B, 64]
+        return x.permute(1, 2, 0)
 
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor

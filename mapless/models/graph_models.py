@@ -20,6 +20,7 @@ from mapless.models.base import (
     ModelConfig,
     RecurrentNavModel,
     normalized_adjacency_parameter,
+    propagate,
     shared_row_gcn_layer,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -45,10 +46,10 @@ class ScenePriorsGraph(nn.Module):
         # Node features [class embedding (the same for every node) || word embedding of the node].
         class_embed = self.get_class_embed(in_view)
         word_embed = self.get_word_embed(self.all_glove)
-        x = F.relu(shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0))
-        x = F.relu(self.W1(self.A @ x))
-        x = F.relu(self.W2(self.A @ x))
-        return self.final_mapping(x.squeeze(-1))
+        x = F.relu(shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0))  # [C, B, 1024]
+        x = F.relu(self.W1(propagate(self.A, x)))
+        x = F.relu(self.W2(propagate(self.A, x)))  # [C, B, 1]
+        return self.final_mapping(x.squeeze(-1).T)
 
 
 class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):

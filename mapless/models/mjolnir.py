@@ -22,6 +22,7 @@ from mapless.models.base import (
     RecurrentNavModel,
     context_vector,
     normalized_adjacency_parameter,
+    propagate,
     shared_row_gcn_layer,
 )
 
@@ -41,11 +42,11 @@ class ObjectGcnMixin:
 
     def _object_gcn(self, cm: Tensor) -> Tensor:
         # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
-        x = F.relu(shared_row_gcn_layer(self.A, cm[..., 0], self.all_glove, self.W0))
-        x = F.relu(self.W1(self.A @ x))
-        x = F.relu(self.W2(self.A @ x))
-        x = F.relu(self.W3(self.A @ torch.cat([x, cm], dim=-1)))
-        return self.final_mapping(x.squeeze(-1))
+        x = F.relu(shared_row_gcn_layer(self.A, cm[..., 0], self.all_glove, self.W0))  # [C, B, C + 300]
+        x = F.relu(self.W1(propagate(self.A, x)))
+        x = F.relu(self.W2(propagate(self.A, x)))
+        x = F.relu(self.W3(propagate(self.A, torch.cat([x, cm.transpose(0, 1)], dim=-1))))  # [C, B, 1]
+        return self.final_mapping(x.squeeze(-1).T)
 
 
 class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
