@@ -148,9 +148,14 @@ class NavModel(nn.Module):
             for n, p in self.named_parameters()
             if p.requires_grad and "ll" not in n and not n.startswith(unreachable)
         ]
-        if (self.config.adapt or self.default_adapt) == "policy":
+        if self.adapts_policy_only:
             names = [n for n in names if n.startswith(self.policy_prefixes)]
         return names
+
+    @property
+    def adapts_policy_only(self) -> bool:
+        """``adapt: policy`` (see :class:`ModelConfig`)."""
+        return (self.config.adapt or self.default_adapt) == "policy"
 
     def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
         return ("critic_linear.", "action_predict_linear.")
@@ -162,16 +167,24 @@ class NavModel(nn.Module):
 class RecurrentNavModel(NavModel, abc.ABC):
     """A model of the form encoder -> ``LSTMCell`` (``self.lstm``) -> actor/critic heads on h.
 
-    Subclasses implement :meth:`encode` (and :meth:`value` if the critic sees more than h). The split
-    lets the meta-learning inner loop run the encoder with per-episode weights under ``vmap`` and the
-    LSTM with shared weights plus low-rank per-episode updates (:mod:`mapless.train.meta`).
+    Subclasses implement :meth:`encode` (and :meth:`value` if the critic sees more than h), and may
+    split off :meth:`describe`. The split lets the meta-learning inner loop run the encoder with
+    per-episode weights under ``vmap`` and the LSTM with shared weights plus low-rank per-episode
+    updates (:mod:`mapless.train.meta`).
     """
+
+    def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The observation-only encoders (the paper's φ(s_t; v) and ψ(g; u)): descriptors that depend
+        on neither the recurrent state nor the previous policy, computed with parameters outside
+        :attr:`policy_prefixes`. Under ``adapt: policy`` the inner loop runs it once for the whole
+        batch, outside the per-episode ``vmap``. The default passes the observation through."""
+        return obs
 
     @abc.abstractmethod
     def encode(
-        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+        self, described: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
-        """``(LSTM input [B, D], extra critic input or None)``."""
+        """``(LSTM input [B, D], extra critic input or None)`` from :meth:`describe`'s output."""
 
     def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
         """Critic ``[B, 1]`` on the new hidden state (and the encoder's extra critic input)."""
@@ -180,7 +193,7 @@ class RecurrentNavModel(NavModel, abc.ABC):
     def forward(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> ModelOutput:
-        x, critic_input = self.encode(obs, hidden, prev_policy)
+        x, critic_input = self.encode(self.describe(obs), hidden, prev_policy)
         h, c = lstm_step(x, hidden, self.lstm)
         return ModelOutput(self.actor_linear(h), self.value(h, critic_input), (h, c))
 

@@ -74,14 +74,18 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         x = F.relu(self.W2(propagate(self.A, x)))  # [C, B, 64]
         return x.permute(1, 2, 0)
 
-    def encode(
-        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> tuple[Tensor, Tensor | None]:
+    def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Context, graph and target descriptors, ``[B, 192, C]``."""
         cv = context_vector(obs, self.all_glove)  # [B, C, 5]
-        nodes = cv.shape[1]
         context = self.dropout(F.relu(self.context_embed(cv.transpose(1, 2))))
         graph = self.graph_descriptor(obs["context"][..., 0])
-        target = tile(F.relu(self.embed_glove(obs["target_embedding"])), nodes)
-        action = tile(F.relu(self.embed_action(prev_policy)), nodes)
-        fused = F.relu(self.pointwise(torch.cat([context, graph, target, action], dim=1)))
+        target = tile(F.relu(self.embed_glove(obs["target_embedding"])), cv.shape[1])
+        return {"descriptors": torch.cat([context, graph, target], dim=1)}
+
+    def encode(
+        self, described: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
+        descriptors = described["descriptors"]
+        action = tile(F.relu(self.embed_action(prev_policy)), descriptors.shape[-1])
+        fused = F.relu(self.pointwise(torch.cat([descriptors, action], dim=1)))
         return self.dropout(fused).flatten(1), None

@@ -99,16 +99,19 @@ class InnerLoopState:
 
 
 class _Encoder(nn.Module):
-    """``model.encode`` as a module's forward, so that ``functional_call`` can swap its weights."""
+    """``model.encode`` (after ``model.describe`` unless that runs outside) as a module's forward, so
+    that ``functional_call`` can swap its weights."""
 
-    def __init__(self, model: RecurrentNavModel):
+    def __init__(self, model: RecurrentNavModel, describe: bool):
         super().__init__()
         self.model = model
+        self.describe = describe
 
     def forward(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
-        return self.model.encode(obs, hidden, prev_policy)
+        described = self.model.describe(obs) if self.describe else obs
+        return self.model.encode(described, hidden, prev_policy)
 
 
 class InnerLoop:
@@ -147,7 +150,9 @@ class InnerLoop:
         if meta_train:
             if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
                 raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
-            self._encoder = _Encoder(model)
+            # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
+            self._describe_batched = model.adapts_policy_only
+            self._encoder = _Encoder(model, describe=not self._describe_batched)
 
     # -- rollout -------------------------------------------------------------------------------
     def start(self, batch_size: int) -> InnerLoopState:
@@ -207,6 +212,8 @@ class InnerLoop:
             )
             return (x[0],) if extra is None else (x[0], extra[0])
 
+        if self._describe_batched:
+            obs = model.describe(obs)
         encoded = vmap(one_episode, randomness="different")(
             encoder_fast, obs, hidden[0], hidden[1], prev_policy
         )

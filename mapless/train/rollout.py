@@ -144,7 +144,7 @@ class Actor:
         if self.lstm is None:
             return self.model(obs, hidden, prev_policy)
         model, cell = self.model, self.model.lstm
-        x, critic_input = model.encode(obs, hidden, prev_policy)
+        x, critic_input = model.encode(model.describe(obs), hidden, prev_policy)
         _, product = self.lstm.gates(x, hidden[0])
         h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
         return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
