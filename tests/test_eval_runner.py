@@ -114,43 +114,55 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
         actions = np.zeros(batch, dtype=np.int64)  # MoveAhead keeps every episode alive
         agent.after_step(actions, env.step(actions))
     assert agent.updates.tolist() == [1, 1, 1]
-    name = "lstm.weight_ih"
+    name = "actor_linear.weight"
     moved = (agent.state.fast[name] - theta[name]).abs().amax(dim=(1, 2))
     assert bool((moved > 0).all())
+    block = slice(0, agent.k)  # the LSTM matrices' first inner step: each slot's first factor block
+    assert bool((agent.state.left[:, block].abs().amax(dim=(1, 2)) > 0).all())
+    assert not agent.state.left[:, agent.k :].any()
     # φ and θ themselves never change; a new episode starts again from θ.
     for n, p in model.named_parameters():
         assert torch.equal(p, theta[n])
     agent.start(np.array([1]), env)
     assert torch.equal(agent.state.fast[name][1], theta[name])
+    assert not agent.state.left[1].any() and agent.state.left[0].any()
     assert agent.updates.tolist() == [1, 0, 1]
     assert probs.shape == (batch, 6)
 
 
-def test_in_place_test_time_step_matches_inner_loop(episodes):
+def test_test_time_step_matches_the_training_inner_loop(episodes):
+    """The evaluator's in-place step with per-slot factor blocks gives the same policy as the
+    training inner loop's (differentiable, growing-factor) step on the same rows."""
     from mapless.models.synthetic import synthetic_observations
     from mapless.train.meta import InnerLoop
 
     torch.manual_seed(1)
-    model = build_model("cvmeta", hidden_size=32)
-    reference = InnerLoop(model, meta_train=False)  # before the agent freezes θ and φ
-    ref_state = reference.start(3)
+    model = build_model("cvmeta", hidden_size=32).eval()
+    training = InnerLoop(model)  # before the agent freezes θ and φ
+    train_state = training.start(3)
+    before = InnerLoop(model, meta_train=False)
     agent = AdaptiveModelAgent(model, 3)
+    agent.loop.reset_slots(agent.state, torch.arange(3))
     obs = synthetic_observations(3, model.knowledge)
     due = torch.tensor([True, False, True])
-    for state, step in (
-        (agent.state, agent.adapt),
-        (ref_state, lambda rows, d: reference.adapt(ref_state, rows, d)),
-    ):
+    logits = []
+    for loop, state in ((training, train_state), (agent.loop, agent.state)):
         hidden, prev, rows = model.initial_state(3), torch.zeros(3, 6), []
         for _ in range(6):
-            out = reference.forward(state, obs, hidden, prev)
+            out = loop.forward(state, obs, hidden, prev)
             hidden, prev = out.hidden, torch.softmax(out.logits, dim=-1)
             rows.append(torch.cat([hidden[0], prev], dim=-1))
-        step(torch.stack(rows, dim=1), due)
-    for name, w in agent.state.fast.items():
-        assert torch.equal(w, ref_state.fast[name]), name
-    assert not torch.equal(agent.state.fast["lstm.weight_ih"][0], model.lstm.weight_ih)
-    assert torch.equal(agent.state.fast["lstm.weight_ih"][1], model.lstm.weight_ih)
+        loop.adapt(state, torch.stack(rows, dim=1), due)
+        logits.append(loop.forward(state, obs, hidden, prev).logits.detach())
+    torch.testing.assert_close(logits[1], logits[0], rtol=1e-5, atol=1e-6)
+    assert agent.state.slot_updates.tolist() == [1, 0, 1]
+    fresh = before.start(3)
+    hidden, prev = model.initial_state(3), torch.zeros(3, 6)
+    for _ in range(6):
+        out = before.forward(fresh, obs, hidden, prev)
+        hidden, prev = out.hidden, torch.softmax(out.logits, dim=-1)
+    unadapted = before.forward(fresh, obs, hidden, prev).logits.detach()
+    assert torch.equal(unadapted[1], logits[1][1]) and not torch.allclose(unadapted[0], logits[1][0])
 
 
 def test_adaptive_model_evaluates_end_to_end(episodes):

@@ -201,9 +201,10 @@ def test_test_time_adaptation_keeps_no_graph_and_matches_training_outputs():
     before = {n: p.detach().clone() for n, p in model.named_parameters()}
     loop = InnerLoop(model, meta_train=False)
     state, eval_logits, _ = batched_run(model, loop, obs, actions, rewards, [7, 7])
-    assert state.updates == 2
+    assert state.slot_updates.tolist() == [2, 2]
     assert torch.allclose(eval_logits, train_logits, atol=1e-10)
     assert all(w.grad_fn is None for w in state.fast.values())
+    assert state.left.grad_fn is None and len(state.chunk) == 1  # step 7 only: chunks never pile up
     assert all(torch.equal(before[n], p) for n, p in model.named_parameters())
     with pytest.raises(RuntimeError):
         loop.backward(state, eval_logits.sum())

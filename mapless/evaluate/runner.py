@@ -99,9 +99,11 @@ class ModelAgent:
 class AdaptiveModelAgent(ModelAgent):
     """An adaptive model (learned interaction loss) with SAVN's test-time inner loop, φ frozen.
 
-    Every slot owns fast weights (θ, reset to the trained θ when an episode starts). Episodes start
-    at k-step boundaries, so every slot's k-row buffer covers exactly its last k steps, computed with
-    its current fast weights, and one batched ``InnerLoop.adapt`` serves all slots due for a step.
+    Every slot owns fast weights (θ, reset to the trained θ when an episode starts): the small ones as
+    per-slot copies, the LSTM matrices as θ plus the slot's low-rank inner-step factors, exactly as
+    in training (:class:`mapless.train.meta.InnerLoop` with ``meta_train=False``). Episodes start at
+    k-step boundaries, so every slot's k-row buffer covers exactly its last k steps, computed with its
+    current fast weights, and one batched ``InnerLoop.adapt`` serves all slots due for a step.
     """
 
     def __init__(self, model, batch_size: int):
@@ -115,20 +117,21 @@ class AdaptiveModelAgent(ModelAgent):
         self.state = self.loop.start(batch_size)
         self.k = self.loop.steps
         self.start_every = self.k
-        self.updates = np.zeros(batch_size, dtype=np.int64)
         self.alive = torch.zeros(batch_size, dtype=torch.bool)
         self.rows: list = []
-        self.theta = {n: model.get_parameter(n).detach() for n in self.state.fast}
+
+    @property
+    def updates(self) -> np.ndarray:
+        """Inner steps taken by each slot's current episode."""
+        return self.state.slot_updates.numpy()
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
         torch = self.torch
         index = torch.as_tensor(slots, dtype=torch.long)
+        self.loop.reset_slots(self.state, index)
         with torch.no_grad():
-            for name, fast in self.state.fast.items():
-                fast[index] = self.theta[name]
             for tensor in (*self.hidden, self.prev_policy):
                 tensor[index] = 0.0
-        self.updates[slots] = 0
         self.alive[index] = True
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
@@ -137,26 +140,9 @@ class AdaptiveModelAgent(ModelAgent):
         out = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
         probs = torch.softmax(out.logits, dim=-1)
         self.rows.append(torch.cat([out.hidden[0], probs], dim=-1))
-        self._out = out
         self.hidden = out.hidden
         self.prev_policy = probs
         return probs.detach().numpy()
-
-    def adapt(self, rows, due) -> None:
-        """``InnerLoop.adapt`` at test time (θ_b <- θ_b - α ∇ L_int^φ for the ``due`` slots), done in
-        place: with no meta-gradient to keep, the fast weights need not be reallocated, which saves
-        a copy of every slot's weights per inner step (a third of the step's time for SAVN). The
-        arithmetic is the same (``α g`` rounded, then subtracted), so results are bit-identical."""
-        torch = self.torch
-        loss = (self.model.learned_loss(rows) * due.to(rows.dtype)).sum()
-        fast = self.state.fast
-        names = list(fast)
-        grads = torch.autograd.grad(loss, [fast[n] for n in names], allow_unused=True)
-        with torch.no_grad():
-            for name, g in zip(names, grads, strict=True):
-                if g is not None:  # out of the learned loss's reach: unchanged, as in SAVN
-                    fast[name].sub_(g.mul_(self.loop.inner_lr))
-        self.state.updates += 1
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
         torch = self.torch
@@ -164,15 +150,9 @@ class AdaptiveModelAgent(ModelAgent):
         self.alive &= ~ended
         if len(self.rows) < self.k:
             return
-        rows = torch.stack(self.rows, dim=1)
-        due = self.alive & torch.from_numpy(self.updates < self.loop.max_updates)
-        if bool(due.any()):
-            self.adapt(rows, due)
-            self.updates[due.numpy()] += 1
-        # Gradients never flow to earlier chunks (their fast weights are gone): cut the graph here.
+        due = self.alive & (self.state.slot_updates < self.loop.max_updates)
+        self.loop.adapt(self.state, torch.stack(self.rows, dim=1), due)
         self.rows = []
-        self.hidden = (self.hidden[0].detach(), self.hidden[1].detach())
-        self.prev_policy = self.prev_policy.detach()
 
 
 class OracleAgent:
@@ -239,16 +219,15 @@ class AgentSpec:
             return str(self.model.get("name", "model"))
         return self.kind if self.kind != "factory" else str(self.factory)
 
-    def build(self, batch_size: int, adaptive_batch_size: int | None = None) -> Agent:
-        """The agent, stepping ``batch_size`` episodes at once (``adaptive_batch_size`` for models
-        that adapt at test time: each of their episodes carries a full copy of the adapted weights)."""
+    def build(self, batch_size: int) -> Agent:
+        """The agent, stepping ``batch_size`` episodes at once."""
         if self.kind == "oracle":
             return OracleAgent(batch_size)
         if self.kind == "factory":
             return _import(self.factory)(batch_size)
         model = load_model(self)
         if model.adaptive:
-            return AdaptiveModelAgent(model, min(batch_size, adaptive_batch_size or batch_size))
+            return AdaptiveModelAgent(model, batch_size)
         return ModelAgent(model, batch_size)
 
 
@@ -301,12 +280,10 @@ def target_fields(category_set: str) -> TargetFields:
 # -- the episode loop -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class EvalSettings:
-    """``batch_size`` episodes per worker in lockstep (``adaptive_batch_size`` for adaptive models,
-    whose per-episode fast weights cost about 100 MB per episode for SAVN); ``workers`` spawn
-    processes (1: in-process); ``seed`` of the action sampling; ``greedy`` argmax actions."""
+    """``batch_size`` episodes per worker in lockstep; ``workers`` spawn processes (1: in-process);
+    ``seed`` of the action sampling; ``greedy`` argmax actions."""
 
     batch_size: int = 32
-    adaptive_batch_size: int = 4
     workers: int = 2
     seed: int = 0
     greedy: bool = False
@@ -459,7 +436,7 @@ def _worker(
     library = library_spec.build()
     for scene in sorted({e.scene for e in episodes}):
         library[scene]  # load (or build) before the clock starts
-    agent = agent_spec.build(settings.batch_size, settings.adaptive_batch_size)
+    agent = agent_spec.build(settings.batch_size)
     start = time.perf_counter()
     results = run_episodes(agent, library, episodes, indices, settings)
     return [r.to_dict() for r in results], _rss_mb(), time.perf_counter() - start

@@ -38,10 +38,10 @@ Meta-gradients (:meth:`InnerLoop.backward`):
   differs from second order only by ``-α H_int v`` on θ_0 (the φ gradients are equal);
   tests/test_meta.py checks exactly that.
 
-At test time (``meta_train=False``) the same inner steps run with φ frozen and no graph is kept; there
-every adapted parameter, the LSTM matrices included, is materialised per episode (no graph makes the
-copies cheap, and the evaluation runner resets and updates them in place per slot) and the whole model
-runs under ``vmap``.
+At test time (``meta_train=False``) the same inner steps run with φ frozen and no outer graph: the
+small fast weights are per-slot copies updated in place, and slot b's LSTM factors fill fixed blocks
+(block i for its i-th inner step), so the evaluator resets a slot for a new episode by zeroing its
+blocks (:meth:`InnerLoop.reset_slots`); memory per slot is ~0.5 MB instead of a copy of every weight.
 """
 
 from __future__ import annotations
@@ -94,8 +94,10 @@ class InnerLoopState:
     #: the first inner step (their Δ_t = ∂L_nav/∂gates_t give v_i in :meth:`InnerLoop.backward`).
     factor_records: list[tuple[Tensor, Tensor, Tensor]] = field(default_factory=list)
     later_steps: list[_Step] = field(default_factory=list)
-    #: training: θ_0's LSTM matrices for this rollout (their gradient is computed once, at the end).
+    #: θ_0's LSTM matrices for this rollout (in training their gradient is computed once, at the end).
     lstm: RolloutLstm | None = None
+    #: test time: inner steps taken by each slot's current episode.
+    slot_updates: Tensor | None = None
 
 
 class _Encoder(nn.Module):
@@ -147,12 +149,11 @@ class InnerLoop:
         self.first_order = first_order
         self.meta_train = meta_train
         self.names = model.inner_parameter_names()
-        if meta_train:
-            if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
-                raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
-            # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
-            self._describe_batched = model.adapts_policy_only
-            self._encoder = _Encoder(model, describe=not self._describe_batched)
+        if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
+            raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
+        # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
+        self._describe_batched = model.adapts_policy_only
+        self._encoder = _Encoder(model, describe=not self._describe_batched)
 
     # -- rollout -------------------------------------------------------------------------------
     def start(self, batch_size: int) -> InnerLoopState:
@@ -160,16 +161,34 @@ class InnerLoop:
         fast = {}
         for name in self.names:
             p = params[name]
-            if not self.meta_train:
-                fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
-            elif name not in LOW_RANK:
+            if name in LOW_RANK:
+                continue
+            if self.meta_train:
                 # A broadcast view: differentiable back to θ_0, no copy until the first update.
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape)
-        if not self.meta_train:
-            return InnerLoopState(fast=fast)
-        lstm = RolloutLstm(self.model.lstm)
+            else:  # per-slot copies, updated and reset in place
+                fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
+        lstm = RolloutLstm(self.model.lstm, record=self.meta_train)
         ids = torch.arange(batch_size, device=lstm.weight.device)
-        return InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
+        state = InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
+        if not self.meta_train:
+            # Fixed per-slot blocks of low-rank factors: slot b's i-th inner step writes block i.
+            columns = self.max_updates * self.steps
+            rows_in = self.model.lstm.weight_ih.shape[1] + self.model.lstm.weight_hh.shape[1]
+            state.left = lstm.weight.new_zeros(batch_size, columns, lstm.weight.shape[1])
+            state.right = lstm.weight.new_zeros(batch_size, columns, rows_in)
+            state.slot_updates = torch.zeros(batch_size, dtype=torch.long, device=lstm.weight.device)
+        return state
+
+    def reset_slots(self, state: InnerLoopState, slots: Tensor) -> None:
+        """Test time: new episodes in ``slots`` start again from the trained θ."""
+        params = dict(self.model.named_parameters())
+        with torch.no_grad():
+            for name, w in state.fast.items():
+                w[slots] = params[name].detach()
+            state.left[slots] = 0.0
+            state.right[slots] = 0.0
+            state.slot_updates[slots] = 0
 
     def forward(
         self,
@@ -179,30 +198,11 @@ class InnerLoop:
         prev_policy: Tensor,
     ) -> ModelOutput:
         """The model's forward pass with each episode's own fast weights."""
-        if self.meta_train:
-            return self._forward_low_rank(state, obs, hidden, prev_policy)
         model = self.model
-
-        def one_episode(fast, episode_obs, h, c, policy):
-            single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}
-            out = functional_call(
-                model, fast, (single, (h.unsqueeze(0), c.unsqueeze(0)), policy.unsqueeze(0))
-            )
-            return out.logits[0], out.value[0], out.hidden[0][0], out.hidden[1][0]
-
-        logits, value, h, c = vmap(one_episode, randomness="different")(
-            state.fast, obs, hidden[0], hidden[1], prev_policy
-        )
-        return ModelOutput(logits, value, (h, c))
-
-    def _forward_low_rank(
-        self,
-        state: InnerLoopState,
-        obs: dict[str, Tensor],
-        hidden: tuple[Tensor, Tensor],
-        prev_policy: Tensor,
-    ) -> ModelOutput:
-        model = self.model
+        if not self.meta_train and not state.chunk:
+            # Test time: the fast weights are updated in place, so an inner step must not reach back
+            # into an earlier chunk's graph (it acted with other weights): cut it at chunk starts.
+            hidden, prev_policy = (hidden[0].detach(), hidden[1].detach()), prev_policy.detach()
         encoder_fast = {f"model.{n}": w for n, w in state.fast.items() if not n.startswith(CORE_PREFIXES)}
 
         def one_episode(fast, episode_obs, h, c, policy):
@@ -235,7 +235,7 @@ class InnerLoop:
             logits = F.linear(h, weight, self._param(state, "actor_linear.bias"))
 
         step = _Step(gates, inputs, state.ids, state.updates)
-        if state.updates < self.max_updates:
+        if state.updates < self.max_updates or not self.meta_train:
             state.chunk.append(step)
         if self.first_order and state.updates > 0:
             state.later_steps.append(step)
@@ -253,6 +253,9 @@ class InnerLoop:
             return False
         rows = torch.stack(state.rows, dim=1)
         state.rows = []  # SAVN resets the learned-loss buffer after every chunk of k
+        if not self.meta_train:
+            self.adapt(state, rows, alive & (state.slot_updates < self.max_updates))
+            return True
         if state.updates >= self.max_updates or not bool(alive.any()):
             return False
         self.adapt(state, rows, alive)
@@ -278,14 +281,17 @@ class InnerLoop:
     # -- inner step ----------------------------------------------------------------------------
     def adapt(self, state: InnerLoopState, rows: Tensor, active: Tensor) -> None:
         """One inner SGD step of the episodes where ``active`` (``[B]`` bool) on ``rows [B, k, H+6]``."""
+        if not self.meta_train:
+            self._adapt_in_place(state, rows, active)
+            return
         loss = (self.model.learned_loss(rows) * active.to(rows.dtype)).sum()
         names = list(state.fast)
-        steps = state.chunk if self.meta_train else []
-        keep_graph = self.meta_train  # second order needs it; first order needs g_i's graph to φ
+        steps = state.chunk
+        # create_graph: second order differentiates through the step; first order needs g_i's graph to φ.
         grads = torch.autograd.grad(
             loss,
             [state.fast[n] for n in names] + [s.gates for s in steps],
-            create_graph=keep_graph,
+            create_graph=True,
             allow_unused=True,
         )
         new_fast, used = {}, {}
@@ -293,20 +299,46 @@ class InnerLoop:
             w = state.fast[name]
             if g is None:  # parameter outside the learned loss's reach: unchanged (SAVN)
                 new_fast[name] = w
-                continue
-            if not self.meta_train:
-                new_fast[name] = (w - self.inner_lr * g).detach().requires_grad_()
             elif self.first_order:
                 new_fast[name] = w - self.inner_lr * g.detach()
                 used[name] = g
             else:
                 new_fast[name] = w - self.inner_lr * g
-        if self.meta_train:
-            self._append_low_rank(state, steps, grads[len(names) :])
-        if self.meta_train and self.first_order:
+        self._append_low_rank(state, steps, grads[len(names) :])
+        if self.first_order:
             state.records.append((used, {n: new_fast[n] for n in used}))
         state.fast = new_fast
         state.updates += 1
+
+    def _adapt_in_place(self, state: InnerLoopState, rows: Tensor, due: Tensor) -> None:
+        """Test time: the same step for the slots ``due``, in place (there is no meta-gradient to
+        keep): the small fast weights are decremented (``α g`` rounded, then subtracted, as in
+        training) and slot b's LSTM factors fill its block number ``slot_updates[b]``."""
+        steps, state.chunk = state.chunk, []
+        if not bool(due.any()):
+            return
+        loss = (self.model.learned_loss(rows) * due.to(rows.dtype)).sum()
+        names = list(state.fast)
+        grads = torch.autograd.grad(
+            loss, [state.fast[n] for n in names] + [s.gates for s in steps], allow_unused=True
+        )
+        with torch.no_grad():
+            for name, g in zip(names, grads[: len(names)], strict=True):
+                if g is not None:  # out of the learned loss's reach: unchanged, as in SAVN
+                    state.fast[name].sub_(g.mul_(self.inner_lr))
+            slots = due.nonzero().squeeze(1)
+            block = torch.arange(self.steps, device=slots.device)
+            columns = state.slot_updates[slots, None] * self.steps + block
+            delta = torch.stack(
+                [
+                    torch.zeros_like(s.gates) if g is None else g
+                    for s, g in zip(steps, grads[len(names) :], strict=True)
+                ],
+                dim=1,
+            )
+            state.left[slots[:, None], columns] = -self.inner_lr * delta[slots]
+            state.right[slots[:, None], columns] = torch.stack([s.inputs for s in steps], dim=1)[slots]
+            state.slot_updates[slots] += 1
 
     def _append_low_rank(
         self, state: InnerLoopState, steps: list[_Step], grads: tuple[Tensor | None, ...]

@@ -53,8 +53,10 @@ def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, record: list
 class RolloutLstm:
     """``cell``'s matrices for one rollout (create one per batch of episodes)."""
 
-    def __init__(self, cell: nn.LSTMCell):
+    def __init__(self, cell: nn.LSTMCell, record: bool = True):
+        """``record=False`` (test-time adaptation, no outer gradient): plain products, nothing kept."""
         self.cell = cell
+        self.record = record
         # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row).
         self.weight = torch.cat([cell.weight_ih, cell.weight_hh], dim=1).t().contiguous().detach()
         #: every product with the weight: (its left factor, the product, transposed?)
@@ -64,6 +66,8 @@ class RolloutLstm:
         """``([x || h], [x || h] · Wᵀ)``: the step's input row and its gate pre-activations before the
         biases (the caller adds biases and any per-episode terms; their sum has the same gradient)."""
         inputs = torch.cat([x, h], dim=-1)
+        if not self.record:
+            return inputs, inputs @ self.weight
         return inputs, _deferred_matmul(inputs, self.weight, False, self.records)
 
     def grad(
