@@ -34,8 +34,7 @@ def masked_agent(name: str, batch_size: int, hidden: int = 512):
 
     torch.manual_seed(0)
     model = build_model(name, hidden_size=hidden)
-    # The evaluator's default: adaptive models step 4 episodes per worker (memory).
-    agent = AdaptiveModelAgent(model, min(batch_size, 4)) if model.adaptive else ModelAgent(model, batch_size)
+    agent = AdaptiveModelAgent(model, batch_size) if model.adaptive else ModelAgent(model, batch_size)
     policy = agent.policy
 
     def no_done(obs, env):
