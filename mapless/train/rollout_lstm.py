@@ -19,6 +19,8 @@ the floating-point summation order (tests/test_meta.py compares them with hand-u
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor, nn
 
@@ -28,9 +30,11 @@ class _DeferredWeightMatmul(torch.autograd.Function):
     gradient only; the weight's is added up later from ``record`` (see :class:`RolloutLstm`)."""
 
     @staticmethod
-    def forward(ctx, rows: Tensor, weight: Tensor, transpose: bool, record: list) -> Tensor:
+    def forward(ctx, rows: Tensor, weight: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
         ctx.save_for_backward(weight)
-        ctx.transpose, ctx.record = transpose, record
+        # A weak reference: the recorder holds this node's output, and a strong one would close a
+        # cycle through the autograd graph that Python's garbage collector cannot see (a leak).
+        ctx.transpose, ctx.recorder = transpose, weakref.ref(recorder)
         return rows @ (weight.T if transpose else weight)
 
     @staticmethod
@@ -39,14 +43,15 @@ class _DeferredWeightMatmul(torch.autograd.Function):
         # The rows' gradient is a product with the same weight. Under create_graph (an inner step
         # of second-order meta-learning) it is itself recorded, so the outer backward can defer the
         # weight gradient of this use too; otherwise nothing will differentiate it again.
-        if torch.is_grad_enabled():
-            return _deferred_matmul(grad, weight, not ctx.transpose, ctx.record), None, None, None
+        recorder = ctx.recorder()
+        if torch.is_grad_enabled() and recorder is not None:
+            return _deferred_matmul(grad, weight, not ctx.transpose, recorder), None, None, None
         return grad @ (weight if ctx.transpose else weight.T), None, None, None
 
 
-def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, record: list) -> Tensor:
-    out = _DeferredWeightMatmul.apply(rows, weight, transpose, record)
-    record.append((rows.detach(), out, transpose))
+def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
+    out = _DeferredWeightMatmul.apply(rows, weight, transpose, recorder)
+    recorder.records.append((rows.detach(), out, transpose))
     return out
 
 
@@ -68,7 +73,7 @@ class RolloutLstm:
         inputs = torch.cat([x, h], dim=-1)
         if not self.record:
             return inputs, inputs @ self.weight
-        return inputs, _deferred_matmul(inputs, self.weight, False, self.records)
+        return inputs, _deferred_matmul(inputs, self.weight, False, self)
 
     def grad(
         self,
