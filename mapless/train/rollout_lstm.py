@@ -27,7 +27,7 @@ from torch import Tensor, nn
 
 class _DeferredWeightMatmul(torch.autograd.Function):
     """``rows @ weight`` (``rows @ weight.T`` when ``transpose``) whose backward returns the rows'
-    gradient only; the weight's is added up later from ``record`` (see :class:`RolloutLstm`)."""
+    gradient only; the weight's is added up later from the recorder's records (see :class:`RolloutLstm`)."""
 
     @staticmethod
     def forward(ctx, rows: Tensor, weight: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
@@ -62,8 +62,10 @@ class RolloutLstm:
         """``record=False`` (test-time adaptation, no outer gradient): plain products, nothing kept."""
         self.cell = cell
         self.record = record
-        # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row).
-        self.weight = torch.cat([cell.weight_ih, cell.weight_hh], dim=1).t().contiguous().detach()
+        # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row). It
+        # stays attached to the parameters only so that every product is a graph node (even of
+        # constant rows); no gradient ever flows back through it.
+        self.weight = torch.cat([cell.weight_ih, cell.weight_hh], dim=1).t().contiguous()
         #: every product with the weight: (its left factor, the product, transposed?)
         self.records: list[tuple[Tensor, Tensor, bool]] = []
 
@@ -87,11 +89,12 @@ class RolloutLstm:
         A product ``r W`` (r in the D + H input space) contributes ``(∂L/∂(rW))ᵀ r`` to W; a
         transposed one ``g Wᵀ`` (an inner step's backward, g in the 4H gate space) contributes
         ``gᵀ ∂L/∂(gWᵀ)``: both are (gate-space)ᵀ (input-space) pairs, summed in one product."""
-        products = [out for _, out, _ in self.records]
+        records = [r for r in self.records if r[1].requires_grad]  # none is not, unless W is frozen
+        products = [out for _, out, _ in records]
         grads = torch.autograd.grad(loss, [*inputs, *products], retain_graph=retain_graph, allow_unused=True)
         grads, outer = list(grads[: len(inputs)]), grads[len(inputs) :]
         gate_side, input_side = [], []
-        for (rows, _, transpose), g in zip(self.records, outer, strict=True):
+        for (rows, _, transpose), g in zip(records, outer, strict=True):
             if g is not None:
                 gate_side.append(rows if transpose else g)
                 input_side.append(g if transpose else rows)
