@@ -5,7 +5,7 @@ masked, so every episode runs its full 100 steps, as a trained agent's failures 
 the evaluator, not how soon an untrained policy happens to stop. Episodes: the first N kitchen
 episodes of the built-in test set (or, before the sets ship, episodes drawn the same way).
 
-    python bench/bench_eval.py [--models a3c,mjolnir_o,savn,cvmeta] [--episodes 64] [--workers 2]
+    python bench/bench_eval.py [--models a3c,mjolnir_o,savn,cvmeta] [--episodes 64] [--workers 2] [--bf16]
 
 The originals evaluate at about 217 steps/s (A3C), 162 (MJOLNIR-o), 83 (SAVN with test-time
 adaptation, 4.4 GB RSS) on this kind of machine; targets: 2,000 / 1,600 / 800 steps/s under 1 GB.
@@ -25,7 +25,7 @@ REFERENCE = {"a3c": 217, "mjolnir_o": 162, "savn": 83}
 TARGET = {"a3c": 2000, "mjolnir_o": 1600, "savn": 800}
 
 
-def masked_agent(name: str, batch_size: int, hidden: int = 512):
+def masked_agent(name: str, batch_size: int, bf16: bool = False, hidden: int = 512):
     """An evaluation agent of a fresh ``name`` model that never calls Done."""
     import torch
 
@@ -34,7 +34,7 @@ def masked_agent(name: str, batch_size: int, hidden: int = 512):
 
     torch.manual_seed(0)
     model = build_model(name, hidden_size=hidden)
-    agent = AdaptiveModelAgent(model, batch_size) if model.adaptive else ModelAgent(model, batch_size)
+    agent = AdaptiveModelAgent(model, batch_size) if model.adaptive else ModelAgent(model, batch_size, bf16)
     policy = agent.policy
 
     def no_done(obs, env):
@@ -47,8 +47,8 @@ def masked_agent(name: str, batch_size: int, hidden: int = 512):
 
 
 def _factory(name: str):
-    def build(batch_size: int):
-        return masked_agent(name, batch_size)
+    def build(batch_size: int, bf16: bool = False):
+        return masked_agent(name, batch_size, bf16)
 
     return build
 
@@ -80,6 +80,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=32)
+    parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast (non-adaptive models)")
     args = parser.parse_args()
 
     from mapless.evaluate.runner import AgentSpec, EvalSettings, evaluate
@@ -87,13 +88,14 @@ def main() -> None:
     episodes = bench_episodes(args.episodes)
     print(
         f"{len(episodes)} kitchen test episodes of 100 steps, {args.workers} workers, batch {args.batch_size}"
+        + (", bf16 autocast" if args.bf16 else "")
     )
     print(
         f"{'model':10s} {'steps/s':>8s} {'vs orig':>8s} {'target':>7s} {'total RSS MB':>12s}  peak RSS MB per process"
     )
     for name in args.models.split(","):
         spec = AgentSpec(kind="factory", factory=f"bench_eval:{name}")
-        settings = EvalSettings(batch_size=args.batch_size, workers=args.workers, seed=0)
+        settings = EvalSettings(batch_size=args.batch_size, workers=args.workers, seed=0, bf16=args.bf16)
         start = time.perf_counter()
         run = evaluate(spec, episodes, settings)
         assert all(r.length == 100 for r in run.results), "Done is masked: every episode runs 100 steps"

@@ -16,6 +16,7 @@ from mapless.evaluate.runner import (
     AgentSpec,
     EvalSettings,
     LibrarySpec,
+    ModelAgent,
     evaluate,
     partition,
     run_episodes,
@@ -189,3 +190,17 @@ def test_partition_keeps_scenes_whole_and_balances(episodes):
     assert scenes[0].isdisjoint(scenes[1])
     assert partition(episodes, 5) == [s for s in partition(episodes, 5) if s]
     assert len(partition(episodes, 5)) == 2  # only two scenes to share out
+
+
+def test_bf16_autocast_policy_matches_float32_up_to_rounding():
+    from mapless.models.synthetic import synthetic_observations
+
+    torch.manual_seed(0)
+    model = build_model("mjolnir_o", hidden_size=64)
+    obs = {k: v.numpy() for k, v in synthetic_observations(4, model.knowledge).items()}
+    exact = ModelAgent(model, 4).policy(obs, None)
+    fast_agent = ModelAgent(model, 4, bf16=True)
+    fast = fast_agent.policy(obs, None)
+    assert fast.dtype == exact.dtype and fast_agent.hidden[0].dtype == torch.float32
+    np.testing.assert_allclose(fast, exact, atol=2e-3)
+    np.testing.assert_allclose(fast.sum(axis=1), 1.0, atol=1e-6)

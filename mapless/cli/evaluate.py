@@ -34,6 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--greedy", action="store_true", help="argmax actions instead of sampling (the references sample)"
     )
+    ev.add_argument(
+        "--bf16",
+        action="store_true",
+        help="bfloat16 autocast for non-adaptive models (faster GCNs on CPUs with BF16)",
+    )
     ev.add_argument("--out", type=Path, help="output folder (default: RUN/eval, or reports/eval/<model>)")
     ev.set_defaults(func=_eval)
 
@@ -61,7 +66,7 @@ def _eval(args: argparse.Namespace) -> int:
 
     path = Path(args.model)
     settings = EvalSettings(
-        batch_size=args.batch_size, workers=args.workers, seed=args.seed, greedy=args.greedy
+        batch_size=args.batch_size, workers=args.workers, seed=args.seed, greedy=args.greedy, bf16=args.bf16
     )
     library = LibrarySpec()
     meta: dict = {"split": args.split}
