@@ -174,9 +174,9 @@ class InnerLoop:
         if not self.meta_train:
             # Fixed per-slot blocks of low-rank factors: slot b's i-th inner step writes block i.
             columns = self.max_updates * self.steps
-            rows_in = self.model.lstm.weight_ih.shape[1] + self.model.lstm.weight_hh.shape[1]
-            state.left = lstm.weight.new_zeros(batch_size, columns, lstm.weight.shape[1])
-            state.right = lstm.weight.new_zeros(batch_size, columns, rows_in)
+            inputs, gates = lstm.weight.shape  # [D + H, 4H]
+            state.left = lstm.weight.new_zeros(batch_size, columns, gates)
+            state.right = lstm.weight.new_zeros(batch_size, columns, inputs)
             state.slot_updates = torch.zeros(batch_size, dtype=torch.long, device=lstm.weight.device)
         return state
 
