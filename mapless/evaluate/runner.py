@@ -85,9 +85,9 @@ class ModelAgent:
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
         torch = self.torch
-        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-            out = self.model(self._tensors(obs), self.hidden, self.prev_policy)
         with torch.inference_mode():
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+                out = self.model(self._tensors(obs), self.hidden, self.prev_policy)
             probs = torch.softmax(out.logits.float(), dim=-1)
         # Clone out of inference mode so start() can write rows in place.
         self.hidden = (out.hidden[0].float().clone(), out.hidden[1].float().clone())

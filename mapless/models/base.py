@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
 from mapless.scenes.catalogue import ROOM_TYPES
 
@@ -80,8 +81,6 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         if self.adapt not in (None, *ADAPT_MODES):
-            from mapless.config import ConfigError
-
             raise ConfigError(f"config key 'model.adapt': {self.adapt!r} is not one of {ADAPT_MODES}")
 
 
