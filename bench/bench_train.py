@@ -7,7 +7,11 @@ worker start-up and scene loading are not counted (they are printed separately a
 Memory is the peak resident set of the trainer process, plus the largest async worker.
 
     python bench/bench_train.py [--models cvmeta,savn,mjolnir_o,a3c,sp] [--seconds 60] [--batch 32]
-                                [--workers 2] [--scenes train:kitchen] [--json out.json]
+                                [--modes batched,batched-bf16,async] [--workers 2]
+                                [--scenes train:kitchen] [--json out.json]
+
+Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``, bfloat16 LSTM
+products). The ratio is the faster batched mode over async.
 
 The originals train at about 42-49 frames/s (A3C), 34-46 (SAVN), 21-31 (Scene Priors), 33-61
 (MJOLNIR-o) on this kind of machine with 2 workers; targets are ten times the best of those.
@@ -38,11 +42,13 @@ def _measure(
     from mapless.train.config import TrainConfig
     from mapless.train.hogwild import AsyncTrainer
 
+    mode, _, precision = mode.partition("-")
     data = apply_overrides(
         {},
         [
             f"model.name={model}",
             f"mode={mode}",
+            f"precision={precision or 'fp32'}",
             f"env.scenes={scenes}",
             f"batch_size={batch}",
             f"workers={workers}",
@@ -64,7 +70,7 @@ def _measure(
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     return {
         "model": model,
-        "mode": mode,
+        "mode": mode + (f"-{precision}" if precision else ""),
         "frames_per_s": summary["steady_frames_per_s"],
         "frames": summary["frames"],
         "episodes": summary["episodes"],
@@ -78,7 +84,7 @@ def _measure(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", default="cvmeta,savn,mjolnir_o,a3c,sp")
-    parser.add_argument("--modes", default="batched,async")
+    parser.add_argument("--modes", default="batched,batched-bf16,async")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--workers", type=int, default=2)
@@ -115,20 +121,26 @@ def main() -> None:
                 f"{model:10s} {mode:8s} {result['frames_per_s']:8.1f} frames/s  "
                 f"({result['episodes']:.0f} episodes, mean length {result['mean_length']:.1f}, "
                 f"start-up {result['startup_s']:.1f} s, RSS {result['rss_mb']:.0f} MB"
-                + (f", worker {result['worker_rss_mb']:.0f} MB" if mode == "async" else "")
+                + (f", worker {result['worker_rss_mb']:.0f} MB" if mode.startswith("async") else "")
                 + ")",
                 flush=True,
             )
 
-    print(f"\n{'model':10s} {'batched':>9s} {'async':>9s} {'ratio':>7s} {'target':>7s} {'reference':>9s}")
-    by = {(r["model"], r["mode"]): r for r in results}
+    modes = args.modes.split(",")
+    print(
+        f"\n{'model':10s} "
+        + " ".join(f"{m:>13s}" for m in modes)
+        + f" {'ratio':>7s} {'target':>7s} {'reference':>9s}"
+    )
+    by = {(r["model"], r["mode"]): r["frames_per_s"] for r in results}
     for model in args.models.split(","):
-        b = by.get((model, "batched"), {}).get("frames_per_s", float("nan"))
-        a = by.get((model, "async"), {}).get("frames_per_s", float("nan"))
+        batched = max((by[model, m] for m in modes if m.startswith("batched")), default=float("nan"))
+        asynchronous = by.get((model, "async"), float("nan"))
         print(
-            f"{model:10s} {b:9.1f} {a:9.1f} {b / a if a else float('nan'):6.1f}x "
-            f"{TARGET.get(model, float('nan')):7.0f} {REFERENCE.get(model, float('nan')):9.0f}"
-        )
+            f"{model:10s} " + " ".join(f"{by[model, m]:13.1f}" for m in modes)
+            + f" {batched / asynchronous:6.1f}x {TARGET.get(model, float('nan')):7.0f}"
+            f" {REFERENCE.get(model, float('nan')):9.0f}"
+        )  # fmt: skip
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

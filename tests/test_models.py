@@ -4,12 +4,13 @@ import math
 
 import pytest
 import torch
-from torch.func import functional_call
+from torch.func import functional_call, vmap
 
 from mapless.config import ConfigError
 from mapless.errors import UnknownNameError
 from mapless.knowledge import normalize_adjacency, synthetic_knowledge
 from mapless.models import ModelConfig, build_model, context_vector, count_parameters, model_names
+from mapless.models.base import pointwise_conv
 from mapless.models.synthetic import synthetic_observations
 
 ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta"]
@@ -267,3 +268,27 @@ def test_policy_adaptation_keeps_the_encoders_fixed(tiny):
     assert "pointwise.weight" in savn.inner_parameter_names()
     with pytest.raises(ConfigError, match=r"model\.adapt"):
         ModelConfig(name="cvmeta", adapt="encoders")
+
+
+class _Pointwise(torch.nn.Module):
+    def __init__(self, conv):
+        super().__init__()
+        self.conv = conv
+
+    def forward(self, x):
+        return pointwise_conv(self.conv, x)
+
+
+def test_pointwise_conv_equals_the_convolution_also_with_per_episode_weights_under_vmap():
+    torch.manual_seed(0)
+    for conv, x in (
+        (torch.nn.Conv2d(6, 4, 1), torch.randn(3, 6, 7, 7)),
+        (torch.nn.Conv1d(5, 4, 1), torch.randn(3, 5, 11)),
+    ):
+        torch.testing.assert_close(pointwise_conv(conv, x), conv(x))
+        # Per-episode weights, as the inner loop's fast weights: one episode per vmap lane.
+        weights = {n: p.detach() + 0.1 * torch.randn(3, *p.shape) for n, p in conv.named_parameters()}
+        expected = vmap(lambda w, xi, m=conv: functional_call(m, w, (xi[None],))[0])(weights, x)
+        wrapped, lanes = _Pointwise(conv), {f"conv.{n}": w for n, w in weights.items()}
+        got = vmap(lambda w, xi, m=wrapped: functional_call(m, w, (xi[None],))[0])(lanes, x)
+        torch.testing.assert_close(got, expected)

@@ -70,3 +70,27 @@ def test_a_finished_rollout_is_freed():
     del lstm, loss
     gc.collect()
     assert product() is None  # no reference cycle through the autograd graph keeps it alive
+
+
+def test_bfloat16_products_stay_close_to_float32_including_second_order():
+    torch.manual_seed(0)
+    cell = nn.LSTMCell(48, 32)
+    xs = torch.randn(6, 4, 48, requires_grad=True)
+    params = [*cell.parameters(), xs]
+
+    def outer(lstm):
+        inner = _rollout(cell, xs, lstm)
+        (gx,) = torch.autograd.grad(inner, xs, create_graph=True)
+        return inner + gx.pow(2).sum()
+
+    exact = RolloutLstm(cell)
+    expected = exact.grad(outer(exact), params)
+    low = RolloutLstm(cell, dtype=torch.bfloat16)
+    loss = outer(low)
+    assert loss.dtype == torch.float32 and low.records[0][1].dtype == torch.float32
+    got = low.grad(loss, params)
+    for g, e in zip(got, expected, strict=True):
+        assert g.dtype == torch.float32
+        cosine = torch.nn.functional.cosine_similarity(g.flatten(), e.flatten(), dim=0)
+        assert cosine > 0.999  # bfloat16's 8-bit mantissa: close, but not equal ...
+    assert not all(torch.equal(g, e) for g, e in zip(got, expected, strict=True))  # ... products did change

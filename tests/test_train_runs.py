@@ -89,6 +89,7 @@ def test_checkpoint_files_are_plain_data(tmp_path: Path) -> None:
         ("episodes=0", "episodes"),
         ("batch_size=0", "batch_size"),
         ("mode=sync", "mode"),
+        ("precision=fp16", "precision"),
         ("optim.learning_rate=1", "learning_rate"),
     ],
 )

@@ -23,6 +23,7 @@ from mapless.models.base import (
     RecurrentNavModel,
     glorot_init,
     init_heads_and_lstm,
+    pointwise_conv,
     tile,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -41,11 +42,11 @@ class SavnEmbeddingMixin:
         self.dropout = nn.Dropout(self.config.dropout)
 
     def _base_embedding(self, obs: dict[str, Tensor], prev_policy: Tensor) -> Tensor:
-        image = self.dropout(F.relu(self.conv1(obs["features"])))
+        image = self.dropout(F.relu(pointwise_conv(self.conv1, obs["features"])))
         glove = tile(F.relu(self.embed_glove(obs["target_embedding"])), GRID, GRID)
         action = tile(F.relu(self.embed_action(prev_policy)), GRID, GRID)
         x = torch.cat([image, glove, action], dim=1)
-        return self.dropout(F.relu(self.pointwise(x))).flatten(1)
+        return self.dropout(F.relu(pointwise_conv(self.pointwise, x))).flatten(1)
 
     def _finish_init(self, lstm_input: int) -> None:
         """LSTM and heads, SAVN's init, then the reference's dead ``action_predict_linear``."""

@@ -246,6 +246,17 @@ def tile(vector: Tensor, *spatial: int) -> Tensor:
     return vector.reshape(*vector.shape, *([1] * len(spatial))).expand(*vector.shape, *spatial)
 
 
+def pointwise_conv(conv: nn.Conv1d | nn.Conv2d, x: Tensor) -> Tensor:
+    """``conv(x)`` of a kernel-size-1 convolution, computed as a product over channels.
+
+    The same values; but under ``vmap`` with per-episode weights (the meta-learning inner loop) it
+    batches into one matrix product, where a convolution falls back to one call per episode."""
+    y = torch.matmul(conv.weight.flatten(1), x.flatten(2))  # [B, out, positions]
+    if conv.bias is not None:
+        y = y + conv.bias.unsqueeze(-1)
+    return y.unflatten(2, x.shape[2:])
+
+
 def unit(x: Tensor, dim: int = -1, eps: float = 1e-12) -> Tensor:
     """L2-normalise along ``dim`` as ``x / sqrt(|x|² + eps²)``: equal to ``F.normalize`` up to rounding
     for non-zero x, but smooth at x = 0 (zero queries occur at every episode start, and the inner

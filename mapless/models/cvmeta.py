@@ -31,6 +31,7 @@ from mapless.models.base import (
     glorot_init,
     init_heads_and_lstm,
     normalized_adjacency_parameter,
+    pointwise_conv,
     propagate,
     shared_row_gcn_layer,
     tile,
@@ -77,7 +78,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
         """Context, graph and target descriptors, ``[B, 192, C]``."""
         cv = context_vector(obs, self.all_glove)  # [B, C, 5]
-        context = self.dropout(F.relu(self.context_embed(cv.transpose(1, 2))))
+        context = self.dropout(F.relu(pointwise_conv(self.context_embed, cv.transpose(1, 2))))
         graph = self.graph_descriptor(obs["context"][..., 0])
         target = tile(F.relu(self.embed_glove(obs["target_embedding"])), cv.shape[1])
         return {"descriptors": torch.cat([context, graph, target], dim=1)}
@@ -87,5 +88,5 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     ) -> tuple[Tensor, Tensor | None]:
         descriptors = described["descriptors"]
         action = tile(F.relu(self.embed_action(prev_policy)), descriptors.shape[-1])
-        fused = F.relu(self.pointwise(torch.cat([descriptors, action], dim=1)))
+        fused = F.relu(pointwise_conv(self.pointwise, torch.cat([descriptors, action], dim=1)))
         return self.dropout(fused).flatten(1), None

@@ -23,6 +23,7 @@ from mapless.models.base import (
     RecurrentNavModel,
     glorot_init,
     init_heads_and_lstm,
+    pointwise_conv,
     unit,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -51,14 +52,14 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
 
     @staticmethod
     def _query(layer: nn.Conv1d, vector: Tensor) -> Tensor:
-        return unit(layer(vector.unsqueeze(-1)).squeeze(-1))
+        return unit(pointwise_conv(layer, vector.unsqueeze(-1)).squeeze(-1))
 
     def attention(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Returns ``(cells [B, 64, 49], attention p [B, 49])``."""
         h_prev = hidden[0]
-        cells = self.embed_state(obs["features"].flatten(2))
+        cells = pointwise_conv(self.embed_state, obs["features"].flatten(2))
         keys = self.dropout(unit(cells, dim=1))
         queries = torch.stack(
             [
@@ -69,7 +70,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
             dim=1,
         )  # [B, 3, 64]
         potentials = queries @ keys  # [B, 3, 49] cosine potentials
-        alpha = self.memory_alpha(h_prev.unsqueeze(-1)).squeeze(-1)  # [B, 3]
+        alpha = pointwise_conv(self.memory_alpha, h_prev.unsqueeze(-1)).squeeze(-1)  # [B, 3]
         p = torch.softmax((alpha.unsqueeze(-1) * potentials).sum(dim=1), dim=-1)
         return cells, p
 

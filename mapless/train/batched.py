@@ -28,6 +28,7 @@ from mapless.train.common import (
     BuiltinLibrary,
     LibraryFactory,
     clip_gradients,
+    configure_torch,
     fill_missing_gradients,
     new_model,
     reward_config,
@@ -98,13 +99,12 @@ class BatchedTrainer:
     # -- setup -----------------------------------------------------------------------------------
     def _setup(self, resume: dict | None) -> None:
         cfg, rank = self.config, self.ctx.rank
-        if cfg.threads:
-            torch.set_num_threads(cfg.threads)
+        configure_torch(cfg.threads)
         torch.manual_seed(seed_for(cfg, rank))
         self.rng = np.random.default_rng(seed_for(cfg, 10_000 + rank))
         self.model = new_model(cfg, self.device)
         self.params = trainable(self.model)
-        self.actor = make_actor(self.model, first_order=cfg.meta.first_order)
+        self.actor = make_actor(self.model, first_order=cfg.meta.first_order, precision=cfg.precision)
         self.optimizer = SharedAdam.from_config(self.params, cfg.optim)
         self.obs_keys = observation_keys(self.model)
         library = self.library_factory()

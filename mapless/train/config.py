@@ -145,6 +145,9 @@ class TrainConfig:
     seed: seeds the episode sampler, the action noise and torch (rank r of torchrun adds r).
     device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
     threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
+    precision: ``fp32``, or ``bf16`` for bfloat16 operands in the LSTM's weight products (forward,
+        backward, inner steps and the weight gradient; accumulation in float32). Those products are
+        most of the arithmetic of the SAVN-style models; opt-in (docs/training.md, "Precision").
     checkpoint_every: episodes between checkpoints (a resumable one plus a model snapshot).
     log_every: episodes between TensorBoard / metrics.jsonl records.
     progress: show the tqdm bar.
@@ -164,6 +167,7 @@ class TrainConfig:
     seed: int = 1
     device: str = "cpu"
     threads: int = 0
+    precision: Literal["fp32", "bf16"] = "fp32"
     checkpoint_every: int = 10_000
     log_every: int = 100
     progress: bool = True
@@ -181,6 +185,9 @@ class TrainConfig:
         _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
         _require(self.max_seconds >= 0, "max_seconds", f"must be >= 0, got {self.max_seconds}")
         _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
+        _require(
+            self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
+        )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(

@@ -40,6 +40,7 @@ from mapless.train.common import (
     BuiltinLibrary,
     LibraryFactory,
     clip_gradients,
+    configure_torch,
     fill_missing_gradients,
     new_model,
     reward_config,
@@ -74,7 +75,7 @@ def _worker(
     # Ctrl-C reaches the whole process group; only the main process decides how to stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        torch.set_num_threads(1)
+        configure_torch(threads=1)
         torch.manual_seed(seed)
         rng = np.random.default_rng(seed)
         library = library_factory()
@@ -92,7 +93,7 @@ def _worker(
         )
         device = torch.device("cpu")
         local = new_model(config)
-        actor = make_actor(local, first_order=config.meta.first_order)
+        actor = make_actor(local, first_order=config.meta.first_order, precision=config.precision)
         keys = observation_keys(local)
         shared_params, local_params = trainable(shared_model), trainable(local)
         optimizer = SharedAdam.from_config(shared_params, config.optim)
@@ -226,8 +227,7 @@ class AsyncTrainer:
     # -- loop ------------------------------------------------------------------------------------
     def run(self, resume: dict | None = None) -> dict[str, float]:
         cfg = self.config
-        if cfg.threads:
-            torch.set_num_threads(cfg.threads)
+        configure_torch(cfg.threads)
         torch.manual_seed(seed_for(cfg, 0))
         self.model = new_model(cfg)
         self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.optim)

@@ -54,6 +54,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
 from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.train.precision import encoder_autocast, like
 from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 #: LSTM matrices whose per-episode updates are kept in low rank during meta-training.
@@ -138,6 +139,7 @@ class InnerLoop:
         max_updates: int | None = None,
         first_order: bool = False,
         meta_train: bool = True,
+        dtype: torch.dtype | None = None,
     ):
         if not model.adaptive:
             raise TypeError(f"model {model.config.name!r} has no learned interaction loss")
@@ -148,6 +150,7 @@ class InnerLoop:
         self.max_updates = model.config.max_inner_updates if max_updates is None else max_updates
         self.first_order = first_order
         self.meta_train = meta_train
+        self.dtype = dtype  # compute dtype of the encoders and θ_0's LSTM products (train/precision.py)
         self.names = model.inner_parameter_names()
         if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
             raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
@@ -168,7 +171,7 @@ class InnerLoop:
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape)
             else:  # per-slot copies, updated and reset in place
                 fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
-        lstm = RolloutLstm(self.model.lstm, record=self.meta_train)
+        lstm = RolloutLstm(self.model.lstm, record=self.meta_train, dtype=self.dtype)
         ids = torch.arange(batch_size, device=lstm.weight.device)
         state = InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
         if not self.meta_train:
@@ -212,12 +215,13 @@ class InnerLoop:
             )
             return (x[0],) if extra is None else (x[0], extra[0])
 
-        if self._describe_batched:
-            obs = model.describe(obs)
-        encoded = vmap(one_episode, randomness="different")(
-            encoder_fast, obs, hidden[0], hidden[1], prev_policy
-        )
-        x, extra = encoded[0], (encoded[1] if len(encoded) > 1 else None)
+        with encoder_autocast(self.dtype, prev_policy.device):
+            if self._describe_batched:
+                obs = model.describe(obs)
+            encoded = vmap(one_episode, randomness="different")(
+                encoder_fast, obs, hidden[0], hidden[1], prev_policy
+            )
+        x, extra = like(encoded[0], hidden[0]), (like(encoded[1], hidden[0]) if len(encoded) > 1 else None)
 
         # The LSTM cell of base.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
         h_prev, c_prev = hidden

@@ -28,6 +28,7 @@ from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
 from mapless.train.config import LossConfig
 from mapless.train.meta import InnerLoop, InnerLoopState
+from mapless.train.precision import compute_dtype, encoder_autocast, like
 from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 OBS_KEYS = ("context", "features", "target_embedding", "target_index")
@@ -123,16 +124,19 @@ class Actor:
     for finished episodes.
     """
 
-    def __init__(self, model: NavModel, inner: InnerLoop | None):
+    def __init__(self, model: NavModel, inner: InnerLoop | None, dtype: torch.dtype | None = None):
+        """``dtype``: compute dtype of a plain model's encoders and LSTM products
+        (:mod:`mapless.train.precision`; the inner loop has its own)."""
         self.model = model
         self.inner = inner
+        self.dtype = dtype
         self.state: InnerLoopState | None = None
         self.lstm: RolloutLstm | None = None
 
     def start(self, batch_size: int) -> None:
         self.state = self.inner.start(batch_size) if self.inner is not None else None
         if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
-            self.lstm = RolloutLstm(self.model.lstm)
+            self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype)
         else:
             self.lstm = None
 
@@ -144,7 +148,9 @@ class Actor:
         if self.lstm is None:
             return self.model(obs, hidden, prev_policy)
         model, cell = self.model, self.model.lstm
-        x, critic_input = model.encode(model.describe(obs), hidden, prev_policy)
+        with encoder_autocast(self.dtype, hidden[0].device):
+            x, critic_input = model.encode(model.describe(obs), hidden, prev_policy)
+        x, critic_input = like(x, hidden[0]), like(critic_input, hidden[0])
         _, product = self.lstm.gates(x, hidden[0])
         h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
         return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
@@ -187,8 +193,11 @@ class Actor:
         return lstm.grad(loss, params, retain_graph)
 
 
-def make_actor(model: NavModel, first_order: bool = False) -> Actor:
-    return Actor(model, InnerLoop(model, first_order=first_order) if model.adaptive else None)
+def make_actor(model: NavModel, first_order: bool = False, precision: str = "fp32") -> Actor:
+    """The training actor of ``model`` at ``precision`` (``fp32`` or ``bf16``, :mod:`mapless.train.precision`)."""
+    dtype = compute_dtype(precision)
+    inner = InnerLoop(model, first_order=first_order, dtype=dtype) if model.adaptive else None
+    return Actor(model, inner, dtype)
 
 
 def _stack(

@@ -35,7 +35,7 @@ class _DeferredWeightMatmul(torch.autograd.Function):
         # A weak reference: the recorder holds this node's output, and a strong one would close a
         # cycle through the autograd graph that Python's garbage collector cannot see (a leak).
         ctx.transpose, ctx.recorder = transpose, weakref.ref(recorder)
-        return rows @ (weight.T if transpose else weight)
+        return recorder.multiply(rows, transpose)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None]:
@@ -46,6 +46,8 @@ class _DeferredWeightMatmul(torch.autograd.Function):
         recorder = ctx.recorder()
         if torch.is_grad_enabled() and recorder is not None:
             return _deferred_matmul(grad, weight, not ctx.transpose, recorder), None, None, None
+        if recorder is not None:
+            return recorder.multiply(grad, not ctx.transpose), None, None, None
         return grad @ (weight if ctx.transpose else weight.T), None, None, None
 
 
@@ -58,14 +60,21 @@ def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, recorder: Ro
 class RolloutLstm:
     """``cell``'s matrices for one rollout (create one per batch of episodes)."""
 
-    def __init__(self, cell: nn.LSTMCell, record: bool = True):
-        """``record=False`` (test-time adaptation, no outer gradient): plain products, nothing kept."""
+    def __init__(self, cell: nn.LSTMCell, record: bool = True, dtype: torch.dtype | None = None):
+        """``record=False`` (test-time adaptation, no outer gradient): plain products, nothing kept.
+
+        ``dtype=torch.bfloat16``: every product with the weight, and the final weight gradient, takes
+        bfloat16 operands (accumulated in float32 by the CPU's bf16 dot-product instructions, rounded
+        to bfloat16, returned as float32): 3-5x faster matrix products on CPUs with AVX512-BF16 or
+        AMX, at bfloat16's 8-bit mantissa. Everything else stays float32."""
         self.cell = cell
         self.record = record
         # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row). It
         # stays attached to the parameters only so that every product is a graph node (even of
         # constant rows); no gradient ever flows back through it.
-        self.weight = torch.cat([cell.weight_ih, cell.weight_hh], dim=1).t().contiguous()
+        self.weight = torch.cat([cell.weight_ih.t(), cell.weight_hh.t()])  # one copy, not two
+        self.dtype = dtype if dtype is not None else self.weight.dtype
+        self._operand = self.weight.detach().to(self.dtype)
         #: every product with the weight: (its left factor, the product, transposed?)
         self.records: list[tuple[Tensor, Tensor, bool]] = []
 
@@ -74,8 +83,14 @@ class RolloutLstm:
         biases (the caller adds biases and any per-episode terms; their sum has the same gradient)."""
         inputs = torch.cat([x, h], dim=-1)
         if not self.record:
-            return inputs, inputs @ self.weight
+            return inputs, self.multiply(inputs, transpose=False)
         return inputs, _deferred_matmul(inputs, self.weight, False, self)
+
+    def multiply(self, rows: Tensor, transpose: bool) -> Tensor:
+        """``rows · W`` (``rows · Wᵀ`` when ``transpose``) in the rollout's compute dtype, returned in
+        ``rows``' dtype; no graph."""
+        weight = self._operand.T if transpose else self._operand
+        return _product(rows, weight, self.dtype)
 
     def grad(
         self,
@@ -100,7 +115,7 @@ class RolloutLstm:
                 input_side.append(g if transpose else rows)
         if not gate_side:
             return tuple(grads)
-        full = torch.cat(gate_side).T @ torch.cat(input_side)  # [4H, D + H]
+        full = _product(torch.cat(gate_side).T, torch.cat(input_side), self.dtype)  # [4H, D + H]
         split = self.cell.weight_ih.shape[1]
         for parameter, part in (
             (self.cell.weight_ih, full[:, :split]),
@@ -110,6 +125,13 @@ class RolloutLstm:
                 if tensor is parameter:
                     grads[i] = part.contiguous() if grads[i] is None else grads[i] + part
         return tuple(grads)
+
+
+def _product(left: Tensor, right: Tensor, dtype: torch.dtype) -> Tensor:
+    """``left @ right`` with operands in ``dtype``, the result in ``left``'s dtype."""
+    if left.dtype == dtype and right.dtype == dtype:
+        return left @ right
+    return (left.to(dtype) @ right.to(dtype)).to(left.dtype)
 
 
 def accumulate_grad(params: list[Tensor], grads: tuple[Tensor | None, ...]) -> None:
