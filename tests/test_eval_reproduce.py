@@ -16,6 +16,7 @@ import pytest
 from mapless.cli import main
 from mapless.episodes import evalsets
 from mapless.episodes.episode import Episode
+from mapless.experiments import load_experiment, run_dir_for, train_config
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
@@ -142,6 +143,9 @@ def test_reproduce_table2_and_table3(workspace):
     assert labels == ["a3c", "Kitchen_no_relationships"]
     run_dirs = [m["runs"][0]["run_dir"] for m in payload["models"]]
     assert "__no-kitchen__" in run_dirs[1] and run_dirs[0] != run_dirs[1]
+    # The unablated model is Table 1's run of the same configuration (trained once for both).
+    table1 = load_experiment("table1", "smoke", path=config, overrides=["models=[a3c]"])
+    assert Path(run_dirs[0]) == run_dir_for(table1, train_config(table1, "a3c", seed=1), "all")
     from mapless.train.checkpoint import config_of, load_file
 
     ablated = config_of(load_file(Path(run_dirs[1]) / "final_model.pt"))
