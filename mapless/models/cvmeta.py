@@ -28,11 +28,11 @@ from mapless.models.base import (
     ModelConfig,
     RecurrentNavModel,
     context_vector,
+    gcn_layer,
     glorot_init,
     init_heads_and_lstm,
     normalized_adjacency_parameter,
     pointwise_conv,
-    propagate,
     shared_row_gcn_layer,
     tile,
 )
@@ -71,8 +71,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
         """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
         x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
-        x = F.relu(self.W1(propagate(self.A, x)))
-        x = F.relu(self.W2(propagate(self.A, x)))  # [C, B, 64]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 64]
         return x.permute(1, 2, 0)
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:

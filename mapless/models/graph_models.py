@@ -19,8 +19,8 @@ from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
 from mapless.models.base import (
     ModelConfig,
     RecurrentNavModel,
+    gcn_layer,
     normalized_adjacency_parameter,
-    propagate,
     shared_row_gcn_layer,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -47,8 +47,8 @@ class ScenePriorsGraph(nn.Module):
         class_embed = self.get_class_embed(in_view)
         word_embed = self.get_word_embed(self.all_glove)
         x = F.relu(shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0))  # [C, B, 1024]
-        x = F.relu(self.W1(propagate(self.A, x)))
-        x = F.relu(self.W2(propagate(self.A, x)))  # [C, B, 1]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
 
 

@@ -21,8 +21,8 @@ from mapless.models.base import (
     ModelConfig,
     RecurrentNavModel,
     context_vector,
+    gcn_layer,
     normalized_adjacency_parameter,
-    propagate,
     shared_row_gcn_layer,
 )
 
@@ -43,9 +43,9 @@ class ObjectGcnMixin:
     def _object_gcn(self, cm: Tensor) -> Tensor:
         # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
         x = F.relu(shared_row_gcn_layer(self.A, cm[..., 0], self.all_glove, self.W0))  # [C, B, C + 300]
-        x = F.relu(self.W1(propagate(self.A, x)))
-        x = F.relu(self.W2(propagate(self.A, x)))
-        x = F.relu(self.W3(propagate(self.A, torch.cat([x, cm.transpose(0, 1)], dim=-1))))  # [C, B, 1]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        x = F.relu(gcn_layer(self.A, x, self.W2))
+        x = F.relu(gcn_layer(self.A, torch.cat([x, cm.transpose(0, 1)], dim=-1), self.W3))  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
 
 
