@@ -10,8 +10,8 @@ Memory is the peak resident set of the trainer process, plus the largest async w
                                 [--modes batched,batched-bf16,async] [--workers 2]
                                 [--scenes train:kitchen] [--json out.json]
 
-Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``, bfloat16 LSTM
-products). The ratio is the faster batched mode over async.
+Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``: bfloat16 encoders
+and LSTM products). The ratio is the faster batched mode over async.
 
 The originals train at about 42-49 frames/s (A3C), 34-46 (SAVN), 21-31 (Scene Priors), 33-61
 (MJOLNIR-o) on this kind of machine with 2 workers; targets are ten times the best of those.

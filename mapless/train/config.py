@@ -145,9 +145,10 @@ class TrainConfig:
     seed: seeds the episode sampler, the action noise and torch (rank r of torchrun adds r).
     device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
     threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
-    precision: ``fp32``, or ``bf16`` for bfloat16 operands in the LSTM's weight products (forward,
-        backward, inner steps and the weight gradient; accumulation in float32). Those products are
-        most of the arithmetic of the SAVN-style models; opt-in (docs/training.md, "Precision").
+    precision: ``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast)
+        and the LSTM's weight products (forward, inner steps, weight gradient), where most of the
+        arithmetic is; parameters, optimizer and losses stay float32 (:mod:`mapless.train.precision`,
+        docs/training.md "Precision"). Opt-in.
     checkpoint_every: episodes between checkpoints (a resumable one plus a model snapshot).
     log_every: episodes between TensorBoard / metrics.jsonl records.
     progress: show the tqdm bar.

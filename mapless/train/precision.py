@@ -22,10 +22,6 @@ import torch
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
 
 
-def compute_dtype(precision: str) -> torch.dtype | None:
-    return PRECISIONS[precision]
-
-
 def encoder_autocast(dtype: torch.dtype | None, device: torch.device) -> AbstractContextManager:
     """Autocast to ``dtype`` on ``device``'s type (a no-op context for None)."""
     return torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)

@@ -28,7 +28,7 @@ from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
 from mapless.train.config import LossConfig
 from mapless.train.meta import InnerLoop, InnerLoopState
-from mapless.train.precision import compute_dtype, encoder_autocast, like
+from mapless.train.precision import PRECISIONS, encoder_autocast, like
 from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 OBS_KEYS = ("context", "features", "target_embedding", "target_index")
@@ -195,7 +195,7 @@ class Actor:
 
 def make_actor(model: NavModel, first_order: bool = False, precision: str = "fp32") -> Actor:
     """The training actor of ``model`` at ``precision`` (``fp32`` or ``bf16``, :mod:`mapless.train.precision`)."""
-    dtype = compute_dtype(precision)
+    dtype = PRECISIONS[precision]
     inner = InnerLoop(model, first_order=first_order, dtype=dtype) if model.adaptive else None
     return Actor(model, inner, dtype)
 
