@@ -74,6 +74,11 @@ class ModelAgent:
         self.observation_keys = observation_keys(model)
         self.hidden = model.initial_state(batch_size)
         self.prev_policy = torch.zeros(batch_size, NUM_ACTIONS)
+        # The parameters are fixed for the whole evaluation, so the object GCNs' results are reused
+        # across steps and episodes (mapless.models.memo).
+        from mapless.models.memo import InViewMemo
+
+        self.memo = InViewMemo()
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
         index = self.torch.as_tensor(slots, dtype=self.torch.long)
@@ -85,7 +90,7 @@ class ModelAgent:
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
         torch = self.torch
-        with torch.inference_mode():
+        with torch.inference_mode(), self.model.memoizing_in_view(self.memo):
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
                 out = self.model(self._tensors(obs), self.hidden, self.prev_policy)
             probs = torch.softmax(out.logits.float(), dim=-1)
@@ -139,7 +144,8 @@ class AdaptiveModelAgent(ModelAgent):
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
         torch = self.torch
         # The graph must reach the current fast weights; only k steps of it are ever kept.
-        out = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
+        with self.model.memoizing_in_view(self.memo):
+            out = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
         probs = torch.softmax(out.logits, dim=-1)
         self.rows.append(torch.cat([out.hidden[0], probs], dim=-1))
         self.hidden = out.hidden

@@ -10,7 +10,9 @@ parameters (the meta-learning inner loop, :mod:`mapless.train.meta`), evaluate t
 from __future__ import annotations
 
 import abc
+import contextlib
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
@@ -20,6 +22,7 @@ from torch import Tensor, nn
 
 from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
+from mapless.models.memo import InViewMemo
 from mapless.scenes.catalogue import ROOM_TYPES
 
 NUM_ACTIONS = 6
@@ -161,6 +164,32 @@ class NavModel(nn.Module):
 
     def graph_name(self) -> str:
         return self.config.graph or str(self.default_graph)
+
+    # -- reuse across steps ----------------------------------------------------------------------
+    _in_view_memo: InViewMemo | None = None
+
+    @contextlib.contextmanager
+    def memoizing_in_view(self, memo: InViewMemo | None = None) -> Iterator[InViewMemo | None]:
+        """Within the block, computations that see the observation only through the in-view
+        indicator (the object GCNs, :meth:`per_in_view`) run once per distinct indicator row
+        (:mod:`mapless.models.memo`; pass ``memo`` to go on with an earlier block's store).
+
+        Use it only where their parameters stay fixed: a training rollout, an evaluation. Yields None
+        and changes nothing when the encoders adapt per episode (``adapt: all``)."""
+        if self.adaptive and not self.adapts_policy_only:
+            yield None
+            return
+        memo = memo if memo is not None else InViewMemo()
+        previous, self._in_view_memo = self._in_view_memo, memo
+        try:
+            yield memo
+        finally:
+            self._in_view_memo = previous
+
+    def per_in_view(self, in_view: Tensor, compute: Callable[[Tensor], Tensor]) -> Tensor:
+        """``compute(in_view)`` (rows ``[B, C]`` -> ``[B, ...]``), through the active memo if any."""
+        memo = self._in_view_memo
+        return compute(in_view) if memo is None else memo(in_view, compute)
 
 
 class RecurrentNavModel(NavModel, abc.ABC):

@@ -70,6 +70,9 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
         """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
+        return self.per_in_view(in_view, self._hierarchical_gcn)
+
+    def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
         x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
         x = F.relu(gcn_layer(self.A, x, self.W1))
         x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 64]

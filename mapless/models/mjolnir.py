@@ -41,12 +41,16 @@ class ObjectGcnMixin:
         self.final_mapping = nn.Linear(nodes, GCN_EMBEDDING)
 
     def _object_gcn(self, cm: Tensor) -> Tensor:
-        # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
-        x = F.relu(shared_row_gcn_layer(self.A, cm[..., 0], self.all_glove, self.W0))  # [C, B, C + 300]
-        x = F.relu(gcn_layer(self.A, x, self.W1))
-        x = F.relu(gcn_layer(self.A, x, self.W2))
+        x = self.per_in_view(cm[..., 0], self._in_view_layers).transpose(0, 1)  # [C, B, 5]
         x = F.relu(gcn_layer(self.A, torch.cat([x, cm.transpose(0, 1)], dim=-1), self.W3))  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
+
+    def _in_view_layers(self, in_view: Tensor) -> Tensor:
+        """X3 ``[B, C, 5]``: the layers that see the observation only through the in-view vector."""
+        # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        return F.relu(gcn_layer(self.A, x, self.W2)).transpose(0, 1)
 
 
 class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):

@@ -240,30 +240,31 @@ def run_batch(
     slots_t = torch.as_tensor(slots, device=device)
     logits, values, actions, rewards, mask = [], [], [], [], []
     success = np.zeros(batch, dtype=bool)
-    for t in range(noise.shape[1]):
-        obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
-        out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
-        action = sample_actions(out.logits, noise_t[slots_t, t])
-        full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
-        step = env.step(full_action.cpu().numpy())
-        success |= step.success
-        logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
-        values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
-        actions.append(full_action)
-        rewards.append(step.reward)
-        mask.append(step.active.astype(np.float32))
-        # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
-        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-        alive = ~env.done[slots]
-        actor.observe(out, torch.as_tensor(alive, device=device))
-        if not alive.any():
-            break
-        if not alive.all() and actor.can_compact():
-            keep = torch.as_tensor(np.flatnonzero(alive), device=device)
-            slots, slots_t = slots[alive], slots_t.index_select(0, keep)
-            hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
-            prev_policy = prev_policy.index_select(0, keep)
-            actor.compact(keep)
+    with actor.model.memoizing_in_view():  # the parameters are fixed until the update
+        for t in range(noise.shape[1]):
+            obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
+            out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
+            action = sample_actions(out.logits, noise_t[slots_t, t])
+            full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
+            step = env.step(full_action.cpu().numpy())
+            success |= step.success
+            logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
+            values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
+            actions.append(full_action)
+            rewards.append(step.reward)
+            mask.append(step.active.astype(np.float32))
+            # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
+            hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+            alive = ~env.done[slots]
+            actor.observe(out, torch.as_tensor(alive, device=device))
+            if not alive.any():
+                break
+            if not alive.all() and actor.can_compact():
+                keep = torch.as_tensor(np.flatnonzero(alive), device=device)
+                slots, slots_t = slots[alive], slots_t.index_select(0, keep)
+                hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
+                prev_policy = prev_policy.index_select(0, keep)
+                actor.compact(keep)
     stacked = _stack(logits, values, actions, rewards, mask, device)
     return Trajectory(
         *stacked, success=success, length=env.steps.copy(), optimal_length=env.optimal_length.copy()
@@ -285,24 +286,25 @@ def run_episode(
     prev_policy = torch.zeros(1, NUM_ACTIONS, device=device)
     logits, values, actions, rewards, mask = [], [], [], [], []
     success, steps = False, 0
-    for t in range(len(noise)):
-        out = actor.forward(
-            to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
-        )
-        action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
-        obs, reward, terminated, truncated, info = env.step(int(action))
-        steps += 1
-        success = bool(info["success"])
-        logits.append(out.logits)
-        values.append(out.value)
-        actions.append(action)
-        rewards.append(np.array([reward], dtype=np.float32))
-        mask.append(np.ones(1, dtype=np.float32))
-        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-        done = terminated or truncated
-        actor.observe(out, torch.tensor([not done], device=device))
-        if done:
-            break
+    with actor.model.memoizing_in_view():
+        for t in range(len(noise)):
+            out = actor.forward(
+                to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
+            )
+            action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
+            obs, reward, terminated, truncated, info = env.step(int(action))
+            steps += 1
+            success = bool(info["success"])
+            logits.append(out.logits)
+            values.append(out.value)
+            actions.append(action)
+            rewards.append(np.array([reward], dtype=np.float32))
+            mask.append(np.ones(1, dtype=np.float32))
+            hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+            done = terminated or truncated
+            actor.observe(out, torch.tensor([not done], device=device))
+            if done:
+                break
     stacked = _stack(logits, values, actions, rewards, mask, device)
     return Trajectory(
         *stacked,
