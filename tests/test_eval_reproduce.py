@@ -120,6 +120,23 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert "reusing finished run" in capsys.readouterr().out
 
 
+def test_reproduce_table1_with_all_nine_models(workspace):
+    """The paper's Table 1 lineup end to end: every trained model is selected on val and reported."""
+    root, config = workspace
+    reports = root / "reports_all"
+    models = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta"]
+    overrides = ["--set", f"models=[{','.join(models)}]", "--set", "focus=cvmeta"]
+    assert main(["reproduce", "table1", "--config", str(config), *overrides, "--reports", str(reports)]) == 0
+    payload = json.loads((reports / "table1" / "table1.json").read_text())
+    assert [m["model"] for m in payload["models"]] == models
+    for record in payload["models"][1:]:
+        selection = record["runs"][0]["selection"]
+        assert [c["episodes"] for c in selection["candidates"]] == [8, 16], record["model"]
+        assert len(record["episodes"][0]) == 6
+    md = (reports / "table1" / "table1.md").read_text()
+    assert all(f"| {m} |" in md for m in models)
+
+
 def test_reproduce_table2_and_table3(workspace):
     root, config = workspace
     reports = root / "reports"
