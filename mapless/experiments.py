@@ -340,9 +340,10 @@ def _finish(config: ExperimentConfig, ev: Evaluator, out: Path, lines: list[str]
 
 
 def _pair(estimates: dict | None) -> str:
+    """``SR [95 % interval] / SPL`` of one cell (the SPL interval is left to the JSON, for width)."""
     if not estimates:
         return "–"
-    return f"{format_estimate('success', estimates['success'], False)} / {format_estimate('spl', estimates['spl'], False)}"
+    return f"{format_estimate('success', estimates['success'])} / {format_estimate('spl', estimates['spl'], False)}"
 
 
 def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
