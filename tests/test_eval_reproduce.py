@@ -137,6 +137,21 @@ def test_reproduce_table1_with_all_nine_models(workspace):
     assert all(f"| {m} |" in md for m in models)
 
 
+def test_reproduce_with_two_seeds_reports_mean_and_std_over_seeds(workspace):
+    root, config = workspace
+    reports = root / "reports_seeds"
+    overrides = ["--set", "models=[a3c]", "--set", "focus=a3c", "--seeds", "2"]
+    assert main(["reproduce", "table1", "--config", str(config), *overrides, "--reports", str(reports)]) == 0
+    (record,) = json.loads((reports / "table1" / "table1.json").read_text())["models"]
+    assert [Path(r["run_dir"]).name.split("__")[2] for r in record["runs"]] == ["s1", "s2"]
+    success = record["estimates"]["success"]
+    assert success["seeds"] == 2 and success["episodes"] == 6  # report episodes per seed
+    per_seed = [s["overall"]["success"] for s in record["per_seed"]]
+    assert success["mean"] == pytest.approx(np.mean(per_seed))
+    assert success["std"] == pytest.approx(np.std(per_seed, ddof=1))
+    assert "±" in (reports / "table1" / "table1.md").read_text()
+
+
 def test_reproduce_table2_and_table3(workspace):
     root, config = workspace
     reports = root / "reports"
