@@ -23,6 +23,7 @@ from torch import Tensor
 
 from mapless.episodes.episode import Episode
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.models.memo import InViewMemo
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
@@ -132,8 +133,12 @@ class Actor:
         self.dtype = dtype
         self.state: InnerLoopState | None = None
         self.lstm: RolloutLstm | None = None
+        self.memo: InViewMemo | None = None
 
     def start(self, batch_size: int) -> None:
+        # The parameters stay fixed until the update: the object GCNs' results can be reused
+        # across the rollout's steps (mapless.models.memo).
+        self.memo = InViewMemo()
         self.state = self.inner.start(batch_size) if self.inner is not None else None
         if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
             self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype)
@@ -141,6 +146,12 @@ class Actor:
             self.lstm = None
 
     def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        with self.model.memoizing_in_view(self.memo):
+            return self._forward(obs, hidden, prev_policy)
+
+    def _forward(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> ModelOutput:
         if self.inner is not None:
@@ -240,31 +251,30 @@ def run_batch(
     slots_t = torch.as_tensor(slots, device=device)
     logits, values, actions, rewards, mask = [], [], [], [], []
     success = np.zeros(batch, dtype=bool)
-    with actor.model.memoizing_in_view():  # the parameters are fixed until the update
-        for t in range(noise.shape[1]):
-            obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
-            out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
-            action = sample_actions(out.logits, noise_t[slots_t, t])
-            full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
-            step = env.step(full_action.cpu().numpy())
-            success |= step.success
-            logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
-            values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
-            actions.append(full_action)
-            rewards.append(step.reward)
-            mask.append(step.active.astype(np.float32))
-            # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
-            hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-            alive = ~env.done[slots]
-            actor.observe(out, torch.as_tensor(alive, device=device))
-            if not alive.any():
-                break
-            if not alive.all() and actor.can_compact():
-                keep = torch.as_tensor(np.flatnonzero(alive), device=device)
-                slots, slots_t = slots[alive], slots_t.index_select(0, keep)
-                hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
-                prev_policy = prev_policy.index_select(0, keep)
-                actor.compact(keep)
+    for t in range(noise.shape[1]):
+        obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
+        out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
+        action = sample_actions(out.logits, noise_t[slots_t, t])
+        full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
+        step = env.step(full_action.cpu().numpy())
+        success |= step.success
+        logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
+        values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
+        actions.append(full_action)
+        rewards.append(step.reward)
+        mask.append(step.active.astype(np.float32))
+        # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
+        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        alive = ~env.done[slots]
+        actor.observe(out, torch.as_tensor(alive, device=device))
+        if not alive.any():
+            break
+        if not alive.all() and actor.can_compact():
+            keep = torch.as_tensor(np.flatnonzero(alive), device=device)
+            slots, slots_t = slots[alive], slots_t.index_select(0, keep)
+            hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
+            prev_policy = prev_policy.index_select(0, keep)
+            actor.compact(keep)
     stacked = _stack(logits, values, actions, rewards, mask, device)
     return Trajectory(
         *stacked, success=success, length=env.steps.copy(), optimal_length=env.optimal_length.copy()
@@ -286,25 +296,24 @@ def run_episode(
     prev_policy = torch.zeros(1, NUM_ACTIONS, device=device)
     logits, values, actions, rewards, mask = [], [], [], [], []
     success, steps = False, 0
-    with actor.model.memoizing_in_view():
-        for t in range(len(noise)):
-            out = actor.forward(
-                to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
-            )
-            action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
-            obs, reward, terminated, truncated, info = env.step(int(action))
-            steps += 1
-            success = bool(info["success"])
-            logits.append(out.logits)
-            values.append(out.value)
-            actions.append(action)
-            rewards.append(np.array([reward], dtype=np.float32))
-            mask.append(np.ones(1, dtype=np.float32))
-            hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-            done = terminated or truncated
-            actor.observe(out, torch.tensor([not done], device=device))
-            if done:
-                break
+    for t in range(len(noise)):
+        out = actor.forward(
+            to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
+        )
+        action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
+        obs, reward, terminated, truncated, info = env.step(int(action))
+        steps += 1
+        success = bool(info["success"])
+        logits.append(out.logits)
+        values.append(out.value)
+        actions.append(action)
+        rewards.append(np.array([reward], dtype=np.float32))
+        mask.append(np.ones(1, dtype=np.float32))
+        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        done = terminated or truncated
+        actor.observe(out, torch.tensor([not done], device=device))
+        if done:
+            break
     stacked = _stack(logits, values, actions, rewards, mask, device)
     return Trajectory(
         *stacked,
