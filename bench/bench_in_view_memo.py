@@ -16,7 +16,7 @@ import argparse
 import contextlib
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -53,6 +53,24 @@ def computed_share(used: dict) -> float:
     return sum(m.computed_rows for m in used.values()) / max(requested, 1)
 
 
+def alternate(work: Callable[[], tuple[int, float]], rounds: int) -> dict:
+    """``work()`` (returns the steps it timed and their seconds) with the memo off, then on,
+    ``rounds`` times: steps per second of each setting and the share of rows the memos computed."""
+    totals = {True: [0, 0.0], False: [0, 0.0]}
+    used: dict = {}
+    for _ in range(rounds):
+        for on in (False, True):
+            with memo_switched(on, used):
+                steps, seconds = work()
+            totals[on][0] += steps
+            totals[on][1] += seconds
+    return {
+        "off": totals[False][0] / totals[False][1],
+        "on": totals[True][0] / totals[True][1],
+        "computed": computed_share(used),
+    }
+
+
 def bench_training(model: str, updates: int, rounds: int, threads: int, precision: str) -> dict:
     from mapless.config import apply_overrides, from_dict
     from mapless.train.batched import BatchedTrainer
@@ -64,20 +82,13 @@ def bench_training(model: str, updates: int, rounds: int, threads: int, precisio
     trainer = BatchedTrainer(from_dict(TrainConfig, apply_overrides({}, overrides)), None)
     trainer._setup(None)
     trainer.update()  # warm-up
-    totals = {True: [0, 0.0], False: [0, 0.0]}
-    used: dict = {}
-    for _ in range(rounds):
-        for on in (False, True):
-            with memo_switched(on, used):
-                for _ in range(updates):
-                    start = time.perf_counter()
-                    totals[on][0] += trainer.update()["trajectory"].frames
-                    totals[on][1] += time.perf_counter() - start
-    return {
-        "off": totals[False][0] / totals[False][1],
-        "on": totals[True][0] / totals[True][1],
-        "computed": computed_share(used),
-    }
+
+    def train() -> tuple[int, float]:
+        start = time.perf_counter()
+        frames = sum(trainer.update()["trajectory"].frames for _ in range(updates))
+        return frames, time.perf_counter() - start
+
+    return alternate(train, rounds)
 
 
 def bench_evaluation(model: str, episodes: int, rounds: int) -> dict:
@@ -91,21 +102,14 @@ def bench_evaluation(model: str, episodes: int, rounds: int) -> dict:
     for scene in {e.scene for e in chosen}:
         library[scene]
     settings = EvalSettings(batch_size=32, max_steps=100)
-    totals = {True: [0, 0.0], False: [0, 0.0]}
-    used: dict = {}
-    for _ in range(rounds):
-        for on in (False, True):
-            with memo_switched(on, used):
-                agent = masked_agent(model, settings.batch_size)
-                start = time.perf_counter()
-                results = run_episodes(agent, library, chosen, list(range(len(chosen))), settings)
-                totals[on][1] += time.perf_counter() - start
-                totals[on][0] += sum(r.length for r in results)
-    return {
-        "off": totals[False][0] / totals[False][1],
-        "on": totals[True][0] / totals[True][1],
-        "computed": computed_share(used),
-    }
+
+    def evaluate() -> tuple[int, float]:
+        agent = masked_agent(model, settings.batch_size)  # built outside the clock
+        start = time.perf_counter()
+        results = run_episodes(agent, library, chosen, list(range(len(chosen))), settings)
+        return sum(r.length for r in results), time.perf_counter() - start
+
+    return alternate(evaluate, rounds)
 
 
 def main() -> None:
