@@ -10,7 +10,7 @@ from mapless.config import ConfigError
 from mapless.errors import UnknownNameError
 from mapless.knowledge import normalize_adjacency, synthetic_knowledge
 from mapless.models import ModelConfig, build_model, context_vector, count_parameters, model_names
-from mapless.models.base import pointwise_conv
+from mapless.models.base import pointwise_conv, pointwise_conv_of_parts, tile
 from mapless.models.synthetic import synthetic_observations
 
 ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta"]
@@ -292,3 +292,26 @@ def test_pointwise_conv_equals_the_convolution_also_with_per_episode_weights_und
         wrapped, lanes = _Pointwise(conv), {f"conv.{n}": w for n, w in weights.items()}
         got = vmap(lambda w, xi, m=wrapped: functional_call(m, w, (xi[None],))[0])(lanes, x)
         torch.testing.assert_close(got, expected)
+
+
+def test_pointwise_conv_of_parts_equals_the_conv_of_the_concatenation_to_second_order():
+    torch.manual_seed(0)
+    conv = torch.nn.Conv1d(4 + 3 + 2 + 5, 6, 1).double()
+    maps = [torch.randn(2, 4, 9, dtype=torch.float64), torch.randn(2, 3, 9, dtype=torch.float64)]
+    vectors = [torch.randn(2, 2, dtype=torch.float64), torch.randn(2, 5, dtype=torch.float64)]
+    inputs = [*maps, *vectors, *conv.parameters()]
+    for t in inputs:
+        t.requires_grad_()
+
+    def loss(fused):
+        # An inner gradient inside the loss: the second-order path of the meta-learning inner loop.
+        (inner,) = torch.autograd.grad(fused.tanh().pow(2).sum(), conv.weight, create_graph=True)
+        return fused.sin().sum() + inner.pow(2).sum()
+
+    whole = pointwise_conv(conv, torch.cat([*maps, *(tile(v, 9) for v in vectors)], dim=1))
+    parts = pointwise_conv_of_parts(conv, maps, vectors)
+    torch.testing.assert_close(parts, whole)
+    expected = torch.autograd.grad(loss(whole), inputs)
+    got = torch.autograd.grad(loss(parts), inputs)
+    for g, e in zip(got, expected, strict=True):
+        torch.testing.assert_close(g, e)

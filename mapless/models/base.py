@@ -297,6 +297,24 @@ def pointwise_conv(conv: nn.Conv1d | nn.Conv2d, x: Tensor) -> Tensor:
     return y.unflatten(2, x.shape[2:])
 
 
+def pointwise_conv_of_parts(conv: nn.Conv1d, maps: list[Tensor], vectors: list[Tensor]) -> Tensor:
+    """``pointwise_conv(conv, cat([*maps, *tiled vectors], dim=1))`` without the concatenation.
+
+    ``maps`` are ``[B, D_i, P]``, ``vectors`` ``[B, D_j]`` (constant over the P positions, as tiled
+    embeddings are). The weight's column blocks multiply their own part, and a vector's block is a
+    product with the vector, once instead of at every position. The same values up to rounding; and
+    under the second-order inner loop, whose double backward of a concatenation scatters every
+    part's slice into a zero tensor of the full ``[B, D, P]`` size, it saves that traffic too."""
+    weight = conv.weight.flatten(1)  # [out, sum of D]
+    blocks = weight.split([part.shape[1] for part in (*maps, *vectors)], dim=1)
+    map_blocks, vector_blocks = blocks[: len(maps)], blocks[len(maps) :]
+    y = sum(torch.matmul(w, part) for w, part in zip(map_blocks, maps, strict=True))  # [B, out, P]
+    shift = sum(part @ w.T for w, part in zip(vector_blocks, vectors, strict=True))  # [B, out]
+    if conv.bias is not None:
+        shift = shift + conv.bias
+    return y + shift.unsqueeze(-1)
+
+
 def unit(x: Tensor, dim: int = -1, eps: float = 1e-12) -> Tensor:
     """L2-normalise along ``dim`` as ``x / sqrt(|x|² + eps²)``: equal to ``F.normalize`` up to rounding
     for non-zero x, but smooth at x = 0 (zero queries occur at every episode start, and the inner

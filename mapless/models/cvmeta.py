@@ -12,7 +12,9 @@ Per category j (the C graph nodes play the role of SAVN's 49 cells):
 
 Their concatenation (202 channels x C) goes through a pointwise ``Conv1d(202 -> fusion_channels)`` +
 ReLU + dropout, is flattened (32 x 101 = 3232 by default, close to SAVN's 3136) and enters
-LSTMCell(., 512). Choices the paper leaves open are argued in docs/model.md.
+LSTMCell(., 512). The concatenation is never formed: the convolution is computed part by part, the
+tiled vectors' parts once per episode (:func:`~mapless.models.base.pointwise_conv_of_parts`).
+Choices the paper leaves open are argued in docs/model.md.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from mapless.models.base import (
     init_heads_and_lstm,
     normalized_adjacency_parameter,
     pointwise_conv,
+    pointwise_conv_of_parts,
     shared_row_gcn_layer,
-    tile,
 )
 from mapless.models.learned_loss import LearnedLossMixin
 
@@ -79,17 +81,17 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         return x.permute(1, 2, 0)
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Context, graph and target descriptors, ``[B, 192, C]``."""
+        """Context and graph descriptors ``[B, 64, C]`` and the target descriptor ``[B, 64]``."""
         cv = context_vector(obs, self.all_glove)  # [B, C, 5]
         context = self.dropout(F.relu(pointwise_conv(self.context_embed, cv.transpose(1, 2))))
         graph = self.graph_descriptor(obs["context"][..., 0])
-        target = tile(F.relu(self.embed_glove(obs["target_embedding"])), cv.shape[1])
-        return {"descriptors": torch.cat([context, graph, target], dim=1)}
+        target = F.relu(self.embed_glove(obs["target_embedding"]))
+        return {"context": context, "graph": graph, "target": target}
 
     def encode(
         self, described: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
-        descriptors = described["descriptors"]
-        action = tile(F.relu(self.embed_action(prev_policy)), descriptors.shape[-1])
-        fused = F.relu(pointwise_conv(self.pointwise, torch.cat([descriptors, action], dim=1)))
+        action = F.relu(self.embed_action(prev_policy))
+        maps = [described["context"], described["graph"]]
+        fused = F.relu(pointwise_conv_of_parts(self.pointwise, maps, [described["target"], action]))
         return self.dropout(fused).flatten(1), None

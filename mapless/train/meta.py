@@ -54,6 +54,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
 from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.train.buffers import BufferPool
 from mapless.train.precision import encoder_autocast, like
 from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
@@ -157,6 +158,7 @@ class InnerLoop:
         # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
         self._describe_batched = model.adapts_policy_only
         self._encoder = _Encoder(model, describe=not self._describe_batched)
+        self.buffers = BufferPool()  # the LSTM operand and weight gradients, reused by every rollout
 
     # -- rollout -------------------------------------------------------------------------------
     def start(self, batch_size: int) -> InnerLoopState:
@@ -171,16 +173,17 @@ class InnerLoop:
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape)
             else:  # per-slot copies, updated and reset in place
                 fast[name] = p.detach().unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
-        lstm = RolloutLstm(self.model.lstm, record=self.meta_train, dtype=self.dtype)
-        ids = torch.arange(batch_size, device=lstm.weight.device)
+        cell = self.model.lstm
+        lstm = RolloutLstm(cell, record=self.meta_train, dtype=self.dtype, buffers=self.buffers)
+        ids = torch.arange(batch_size, device=cell.weight_ih.device)
         state = InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
         if not self.meta_train:
             # Fixed per-slot blocks of low-rank factors: slot b's i-th inner step writes block i.
             columns = self.max_updates * self.steps
-            inputs, gates = lstm.weight.shape  # [D + H, 4H]
-            state.left = lstm.weight.new_zeros(batch_size, columns, gates)
-            state.right = lstm.weight.new_zeros(batch_size, columns, inputs)
-            state.slot_updates = torch.zeros(batch_size, dtype=torch.long, device=lstm.weight.device)
+            gates, inputs = cell.weight_ih.shape[0], cell.input_size + cell.hidden_size
+            state.left = cell.weight_ih.new_zeros(batch_size, columns, gates)
+            state.right = cell.weight_ih.new_zeros(batch_size, columns, inputs)
+            state.slot_updates = torch.zeros(batch_size, dtype=torch.long, device=ids.device)
         return state
 
     def reset_slots(self, state: InnerLoopState, slots: Tensor) -> None:
@@ -369,7 +372,8 @@ class InnerLoop:
             raise RuntimeError("backward() needs an InnerLoop built with meta_train=True")
         params = [(n, p) for n, p in self.model.named_parameters() if p.requires_grad]
         if not self.first_order:
-            accumulate_grad([p for _, p in params], state.lstm.grad(loss, [p for _, p in params]))
+            grads = state.lstm.grad(loss, [p for _, p in params])
+            accumulate_grad([p for _, p in params], grads, adopt=state.lstm.weight_gradients)
             return
         phi = set(self.model.learned_loss_parameter_names())
         theta = [(n, p) for n, p in params if n not in phi]
@@ -378,7 +382,7 @@ class InnerLoop:
         grads = state.lstm.grad(
             loss, [p for _, p in theta] + shifted + [s.gates for s in later], retain_graph=bool(state.records)
         )
-        accumulate_grad([p for _, p in theta], grads[: len(theta)])
+        accumulate_grad([p for _, p in theta], grads[: len(theta)], adopt=state.lstm.weight_gradients)
         if not state.records:
             return
         # Eq. 4's inner-product term: only φ is differentiated (θ_0's share is the dropped Hessian term).

@@ -15,6 +15,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from mapless.train.buffers import BufferPool
 from mapless.train.config import OptimConfig
 
 
@@ -36,6 +37,8 @@ class SharedAdam(torch.optim.Optimizer):
                 state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 if amsgrad:
                     state["max_exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        # Not optimizer state (never saved or shared): the step's √v + ε, in the same memory every step.
+        self._scratch = BufferPool()
 
     @classmethod
     def from_config(cls, params: Iterable[Tensor], config: OptimConfig) -> SharedAdam:
@@ -63,11 +66,11 @@ class SharedAdam(torch.optim.Optimizer):
                 t = float(state["step"])
                 state["exp_avg"].mul_(beta1).add_(grad, alpha=1 - beta1)
                 state["exp_avg_sq"].mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                second = state["exp_avg_sq"]
                 if group["amsgrad"]:
-                    torch.maximum(state["max_exp_avg_sq"], state["exp_avg_sq"], out=state["max_exp_avg_sq"])
-                    denom = state["max_exp_avg_sq"].sqrt().add_(group["eps"])
-                else:
-                    denom = state["exp_avg_sq"].sqrt().add_(group["eps"])
+                    second = torch.maximum(state["max_exp_avg_sq"], second, out=state["max_exp_avg_sq"])
+                denom = self._scratch.get(f"denom.{id(p)}", p.shape, p.dtype, p.device)
+                torch.sqrt(second, out=denom).add_(group["eps"])
                 step_size = group["lr"] * math.sqrt(1 - beta2**t) / (1 - beta1**t)
                 p.addcdiv_(state["exp_avg"], denom, value=-step_size)
         return loss

@@ -27,6 +27,7 @@ from mapless.models.memo import InViewMemo
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
+from mapless.train.buffers import BufferPool
 from mapless.train.config import LossConfig
 from mapless.train.meta import InnerLoop, InnerLoopState
 from mapless.train.precision import PRECISIONS, encoder_autocast, like
@@ -134,6 +135,7 @@ class Actor:
         self.state: InnerLoopState | None = None
         self.lstm: RolloutLstm | None = None
         self.memo: InViewMemo | None = None
+        self.buffers = BufferPool()  # a plain model's LSTM operand and weight gradients, per rollout
 
     def start(self, batch_size: int) -> None:
         # The parameters stay fixed until the update: the object GCNs' results can be reused
@@ -141,7 +143,7 @@ class Actor:
         self.memo = InViewMemo()
         self.state = self.inner.start(batch_size) if self.inner is not None else None
         if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
-            self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype)
+            self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype, buffers=self.buffers)
         else:
             self.lstm = None
 
@@ -191,7 +193,8 @@ class Actor:
             self.inner.backward(self.state, loss)
         else:
             params = [p for p in self.model.parameters() if p.requires_grad]
-            accumulate_grad(params, self.gradients(loss, params))
+            grads = self.gradients(loss, params)
+            accumulate_grad(params, grads, adopt=self.lstm.weight_gradients if self.lstm else ())
 
     def gradients(
         self, loss: Tensor, params: list[Tensor], retain_graph: bool = False

@@ -24,35 +24,40 @@ import weakref
 import torch
 from torch import Tensor, nn
 
+from mapless.train.buffers import BufferPool
+
 
 class _DeferredWeightMatmul(torch.autograd.Function):
-    """``rows @ weight`` (``rows @ weight.T`` when ``transpose``) whose backward returns the rows'
-    gradient only; the weight's is added up later from the recorder's records (see :class:`RolloutLstm`)."""
+    """``rows @ W`` (``rows @ W.T`` when ``transpose``) with W the recorder's operand, whose backward
+    returns the rows' gradient only; W's is added up later from the recorder's records (see
+    :class:`RolloutLstm`). The cell's two matrices are inputs only so that every product is a graph
+    node, even of constant rows; no gradient flows to them through here."""
 
     @staticmethod
-    def forward(ctx, rows: Tensor, weight: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
-        ctx.save_for_backward(weight)
+    def forward(
+        ctx, rows: Tensor, weight_ih: Tensor, weight_hh: Tensor, transpose: bool, recorder: RolloutLstm
+    ) -> Tensor:
         # A weak reference: the recorder holds this node's output, and a strong one would close a
         # cycle through the autograd graph that Python's garbage collector cannot see (a leak).
         ctx.transpose, ctx.recorder = transpose, weakref.ref(recorder)
         return recorder.multiply(rows, transpose)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None]:
-        (weight,) = ctx.saved_tensors
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None, None]:
+        recorder = ctx.recorder()
+        if recorder is None:
+            raise RuntimeError("backward through a RolloutLstm that no longer exists (keep it until grad())")
         # The rows' gradient is a product with the same weight. Under create_graph (an inner step
         # of second-order meta-learning) it is itself recorded, so the outer backward can defer the
         # weight gradient of this use too; otherwise nothing will differentiate it again.
-        recorder = ctx.recorder()
-        if torch.is_grad_enabled() and recorder is not None:
-            return _deferred_matmul(grad, weight, not ctx.transpose, recorder), None, None, None
-        if recorder is not None:
-            return recorder.multiply(grad, not ctx.transpose), None, None, None
-        return grad @ (weight if ctx.transpose else weight.T), None, None, None
+        if torch.is_grad_enabled():
+            return _deferred_matmul(grad, not ctx.transpose, recorder), None, None, None, None
+        return recorder.multiply(grad, not ctx.transpose), None, None, None, None
 
 
-def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
-    out = _DeferredWeightMatmul.apply(rows, weight, transpose, recorder)
+def _deferred_matmul(rows: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
+    cell = recorder.cell
+    out = _DeferredWeightMatmul.apply(rows, cell.weight_ih, cell.weight_hh, transpose, recorder)
     recorder.records.append((rows.detach(), out, transpose))
     return out
 
@@ -60,23 +65,40 @@ def _deferred_matmul(rows: Tensor, weight: Tensor, transpose: bool, recorder: Ro
 class RolloutLstm:
     """``cell``'s matrices for one rollout (create one per batch of episodes)."""
 
-    def __init__(self, cell: nn.LSTMCell, record: bool = True, dtype: torch.dtype | None = None):
+    def __init__(
+        self,
+        cell: nn.LSTMCell,
+        record: bool = True,
+        dtype: torch.dtype | None = None,
+        buffers: BufferPool | None = None,
+    ):
         """``record=False`` (test-time adaptation, no outer gradient): plain products, nothing kept.
 
         ``dtype=torch.bfloat16``: every product with the weight, and the final weight gradient, takes
         bfloat16 operands (accumulated in float32 by the CPU's bf16 dot-product instructions, rounded
         to bfloat16, returned as float32): 3-5x faster matrix products on CPUs with AVX512-BF16 or
-        AMX, at bfloat16's 8-bit mantissa. Everything else stays float32."""
+        AMX, at bfloat16's 8-bit mantissa. Everything else stays float32.
+
+        ``buffers``: where the operand and the weight gradients live; a trainer passes the same
+        pool to every rollout (:mod:`mapless.train.buffers`). A gradient :meth:`grad` returns stays
+        valid until the pool's next rollout computes its own."""
         self.cell = cell
         self.record = record
-        # One row-major [D + H, 4H] copy per rollout (the per-step products read it row by row). It
-        # stays attached to the parameters only so that every product is a graph node (even of
-        # constant rows); no gradient ever flows back through it.
-        self.weight = torch.cat([cell.weight_ih.t(), cell.weight_hh.t()])  # one copy, not two
-        self.dtype = dtype if dtype is not None else self.weight.dtype
-        self._operand = self.weight.detach().to(self.dtype)
+        self.dtype = dtype if dtype is not None else cell.weight_ih.dtype
+        self.buffers = buffers if buffers is not None else BufferPool()
+        inputs, hidden = cell.weight_ih.shape[1], cell.weight_hh.shape[1]
+        # One row-major [D + H, 4H] copy per rollout: the per-step products read it row by row.
+        operand = self.buffers.get(
+            "lstm.operand", (inputs + hidden, cell.weight_ih.shape[0]), self.dtype, cell.weight_ih.device
+        )
+        with torch.no_grad():
+            operand[:inputs].copy_(cell.weight_ih.T)
+            operand[inputs:].copy_(cell.weight_hh.T)
+        self._operand = operand
         #: every product with the weight: (its left factor, the product, transposed?)
         self.records: list[tuple[Tensor, Tensor, bool]] = []
+        #: the weight gradients the last :meth:`grad` returned (pool buffers, see accumulate_grad)
+        self.weight_gradients: tuple[Tensor, ...] = ()
 
     def gates(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
         """``([x || h], [x || h] · Wᵀ)``: the step's input row and its gate pre-activations before the
@@ -84,7 +106,7 @@ class RolloutLstm:
         inputs = torch.cat([x, h], dim=-1)
         if not self.record:
             return inputs, self.multiply(inputs, transpose=False)
-        return inputs, _deferred_matmul(inputs, self.weight, False, self)
+        return inputs, _deferred_matmul(inputs, False, self)
 
     def multiply(self, rows: Tensor, transpose: bool) -> Tensor:
         """``rows · W`` (``rows · Wᵀ`` when ``transpose``) in the rollout's compute dtype, returned in
@@ -115,16 +137,33 @@ class RolloutLstm:
                 input_side.append(g if transpose else rows)
         if not gate_side:
             return tuple(grads)
-        full = _product(torch.cat(gate_side).T, torch.cat(input_side), self.dtype)  # [4H, D + H]
+        gate_rows, input_rows = torch.cat(gate_side), torch.cat(input_side)  # [N, 4H], [N, D + H]
         split = self.cell.weight_ih.shape[1]
-        for parameter, part in (
-            (self.cell.weight_ih, full[:, :split]),
-            (self.cell.weight_hh, full[:, split:]),
-        ):
-            for i, tensor in enumerate(inputs):
-                if tensor is parameter:
-                    grads[i] = part.contiguous() if grads[i] is None else grads[i] + part
+        parts = []
+        for name, columns in (("weight_ih", slice(None, split)), ("weight_hh", slice(split, None))):
+            parameter = getattr(self.cell, name)
+            positions = [i for i, tensor in enumerate(inputs) if tensor is parameter]
+            if positions:
+                part = self._weight_gradient(name, gate_rows, input_rows[:, columns])
+                parts.append(part)
+                for i in positions:
+                    grads[i] = part if grads[i] is None else grads[i] + part
+        self.weight_gradients = tuple(parts)
         return tuple(grads)
+
+    def _weight_gradient(self, name: str, gate_rows: Tensor, input_rows: Tensor) -> Tensor:
+        """``gate_rowsᵀ input_rows`` in the pool's buffer for ``name``'s gradient."""
+        parameter = getattr(self.cell, name)
+        shape, device = tuple(parameter.shape), parameter.device
+        out = self.buffers.get(f"grad.{name}", shape, parameter.dtype, device)
+        if parameter.grad is not None and parameter.grad.data_ptr() == out.data_ptr():
+            out = torch.empty_like(out)  # still the .grad of an earlier backward: leave it intact
+        with torch.no_grad():
+            if self.dtype == parameter.dtype:
+                return torch.mm(gate_rows.T, input_rows, out=out)
+            low = self.buffers.get(f"grad.{name}.low", shape, self.dtype, device)
+            torch.mm(gate_rows.T.to(self.dtype), input_rows.to(self.dtype), out=low)
+            return out.copy_(low)
 
 
 def _product(left: Tensor, right: Tensor, dtype: torch.dtype) -> Tensor:
@@ -134,8 +173,19 @@ def _product(left: Tensor, right: Tensor, dtype: torch.dtype) -> Tensor:
     return (left.to(dtype) @ right.to(dtype)).to(left.dtype)
 
 
-def accumulate_grad(params: list[Tensor], grads: tuple[Tensor | None, ...]) -> None:
-    """Add ``grads`` into ``.grad`` as ``Tensor.backward`` would (None: no gradient)."""
+def accumulate_grad(
+    params: list[Tensor], grads: tuple[Tensor | None, ...], adopt: tuple[Tensor, ...] = ()
+) -> None:
+    """Add ``grads`` into ``.grad`` as ``Tensor.backward`` would (None: no gradient).
+
+    A gradient in ``adopt`` (a buffer nothing else writes until the next rollout, such as
+    :attr:`RolloutLstm.weight_gradients`) becomes a missing ``.grad`` as it is, without a copy."""
     for p, g in zip(params, grads, strict=True):
-        if g is not None:
-            p.grad = g.detach().clone() if p.grad is None else p.grad + g.detach()
+        if g is None:
+            continue
+        if p.grad is not None:
+            p.grad = p.grad + g.detach()
+        elif any(g is a for a in adopt):
+            p.grad = g
+        else:
+            p.grad = g.detach().clone()
