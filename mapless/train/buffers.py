@@ -28,5 +28,23 @@ class BufferPool:
             buffer = self._buffers[name] = torch.empty(shape, dtype=dtype, device=device)
         return buffer
 
+    def rows(
+        self, name: str, rows: int, row_shape: tuple[int, ...], dtype: torch.dtype, device: torch.device
+    ) -> Tensor:
+        """The first ``rows`` rows of a buffer whose row count only grows (by a quarter at least, so
+        that a slowly varying count does not reallocate at every update)."""
+        buffer = self._buffers.get(name)
+        fits = (
+            buffer is not None
+            and buffer.shape[0] >= rows
+            and buffer.shape[1:] == row_shape
+            and buffer.dtype == dtype
+            and buffer.device == device
+        )
+        if not fits:
+            capacity = max(rows, int(1.25 * buffer.shape[0]) if buffer is not None else 0)
+            buffer = self._buffers[name] = torch.empty((capacity, *row_shape), dtype=dtype, device=device)
+        return buffer[:rows]
+
     def __len__(self) -> int:
         return len(self._buffers)

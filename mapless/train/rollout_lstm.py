@@ -137,7 +137,8 @@ class RolloutLstm:
                 input_side.append(g if transpose else rows)
         if not gate_side:
             return tuple(grads)
-        gate_rows, input_rows = torch.cat(gate_side), torch.cat(input_side)  # [N, 4H], [N, D + H]
+        gate_rows = self._rows("gate_rows", gate_side)  # [N, 4H]
+        input_rows = self._rows("input_rows", input_side)  # [N, D + H]
         split = self.cell.weight_ih.shape[1]
         parts = []
         for name, columns in (("weight_ih", slice(None, split)), ("weight_hh", slice(split, None))):
@@ -151,8 +152,15 @@ class RolloutLstm:
         self.weight_gradients = tuple(parts)
         return tuple(grads)
 
+    def _rows(self, name: str, pieces: list[Tensor]) -> Tensor:
+        """``torch.cat(pieces)`` in the compute dtype, written into the pool."""
+        rows = sum(piece.shape[0] for piece in pieces)
+        out = self.buffers.rows(name, rows, tuple(pieces[0].shape[1:]), self.dtype, pieces[0].device)
+        return torch.cat(pieces, out=out)
+
     def _weight_gradient(self, name: str, gate_rows: Tensor, input_rows: Tensor) -> Tensor:
-        """``gate_rowsᵀ input_rows`` in the pool's buffer for ``name``'s gradient."""
+        """``gate_rowsᵀ input_rows`` (compute-dtype operands) in the pool's buffer for ``name``'s
+        gradient."""
         parameter = getattr(self.cell, name)
         shape, device = tuple(parameter.shape), parameter.device
         out = self.buffers.get(f"grad.{name}", shape, parameter.dtype, device)
@@ -162,8 +170,7 @@ class RolloutLstm:
             if self.dtype == parameter.dtype:
                 return torch.mm(gate_rows.T, input_rows, out=out)
             low = self.buffers.get(f"grad.{name}.low", shape, self.dtype, device)
-            torch.mm(gate_rows.T.to(self.dtype), input_rows.to(self.dtype), out=low)
-            return out.copy_(low)
+            return out.copy_(torch.mm(gate_rows.T, input_rows, out=low))
 
 
 def _product(left: Tensor, right: Tensor, dtype: torch.dtype) -> Tensor:
