@@ -55,6 +55,7 @@ from torch.func import functional_call, vmap
 
 from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 from mapless.train.buffers import BufferPool
+from mapless.train.low_rank import LowRankUpdates, apply_low_rank
 from mapless.train.precision import encoder_autocast, like
 from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
@@ -90,6 +91,8 @@ class InnerLoopState:
     #: training: low-rank updates of the LSTM matrices, ``-α δ [B, K, 4H]`` and ``[x || h] [B, K, D+H]``.
     left: Tensor | None = None
     right: Tensor | None = None
+    #: training: the steps' view of left/right (None until the first inner step; test time: None).
+    low_rank: LowRankUpdates | None = None
     #: training: the core steps since the last inner step (while more inner steps may come).
     chunk: list[_Step] = field(default_factory=list)
     #: first order only: per inner step (δ with its graph to φ, [x || h], ids), and every step after
@@ -230,9 +233,10 @@ class InnerLoop:
         h_prev, c_prev = hidden
         inputs, product = state.lstm.gates(x, h_prev)
         gates = product + self._param(state, "lstm.bias_ih") + self._param(state, "lstm.bias_hh")
-        if state.left is not None:
-            coefficients = torch.einsum("bkd,bd->bk", state.right, inputs)
-            gates = gates + torch.einsum("bk,bko->bo", coefficients, state.left)
+        if state.low_rank is not None:  # training
+            gates = gates + state.low_rank(inputs)
+        elif state.left is not None:  # test time: the slots' fixed blocks
+            gates = gates + apply_low_rank(inputs, state.left, state.right)
         h, c = lstm_state_from_gates(gates, c_prev)
 
         weight = self._param(state, "actor_linear.weight")
@@ -282,8 +286,7 @@ class InnerLoop:
         if state.ids is not None:
             state.ids = state.ids.index_select(0, keep)
         if state.left is not None:
-            state.left = state.left.index_select(0, keep)
-            state.right = state.right.index_select(0, keep)
+            self._set_low_rank(state, state.left.index_select(0, keep), state.right.index_select(0, keep))
 
     # -- inner step ----------------------------------------------------------------------------
     def adapt(self, state: InnerLoopState, rows: Tensor, active: Tensor) -> None:
@@ -361,9 +364,16 @@ class InnerLoop:
             state.factor_records.append((delta, right.detach(), state.ids))
             delta, right = delta.detach(), right.detach()  # a constant shift for θ_0
         left = -self.inner_lr * delta
-        state.left = left if state.left is None else torch.cat([state.left, left], dim=1)
-        state.right = right if state.right is None else torch.cat([state.right, right], dim=1)
+        if state.left is not None:
+            left, right = torch.cat([state.left, left], dim=1), torch.cat([state.right, right], dim=1)
+        self._set_low_rank(state, left, right)
         state.chunk = []
+
+    @staticmethod
+    def _set_low_rank(state: InnerLoopState, left: Tensor, right: Tensor) -> None:
+        """New factors for the steps to come (their gradients are summed once, mapless.train.low_rank)."""
+        state.low_rank = LowRankUpdates(left, right)
+        state.left, state.right = state.low_rank.left, state.low_rank.right
 
     # -- meta-gradient -------------------------------------------------------------------------
     def backward(self, state: InnerLoopState, loss: Tensor) -> None:
