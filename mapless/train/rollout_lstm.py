@@ -86,15 +86,13 @@ class RolloutLstm:
         self.record = record
         self.dtype = dtype if dtype is not None else cell.weight_ih.dtype
         self.buffers = buffers if buffers is not None else BufferPool()
-        inputs, hidden = cell.weight_ih.shape[1], cell.weight_hh.shape[1]
-        # One row-major [D + H, 4H] copy per rollout: the per-step products read it row by row.
-        operand = self.buffers.get(
-            "lstm.operand", (inputs + hidden, cell.weight_ih.shape[0]), self.dtype, cell.weight_ih.device
-        )
-        with torch.no_grad():
-            operand[:inputs].copy_(cell.weight_ih.T)
-            operand[inputs:].copy_(cell.weight_hh.T)
-        self._operand = operand
+        # Every product reads the weight along the dimension it reduces (``rows @ Mᵀ``, M row-major):
+        # for the few-row products of a rollout that is up to 2x faster than reading across it
+        # (bench/bench_lstm_layout.py). So the forward products (input space -> gate space) read a
+        # gate-major copy [4H, D + H] and the transposed ones (an inner step's backward) an
+        # input-major copy [D + H, 4H].
+        self._gate_major = self._copy_of_weight("lstm.operand.gate_major", input_major=False)
+        self._input_major = self._copy_of_weight("lstm.operand.input_major", input_major=True)
         #: every product with the weight: (its left factor, the product, transposed?)
         self.records: list[tuple[Tensor, Tensor, bool]] = []
         #: the weight gradients the last :meth:`grad` returned (pool buffers, see accumulate_grad)
@@ -111,8 +109,23 @@ class RolloutLstm:
     def multiply(self, rows: Tensor, transpose: bool) -> Tensor:
         """``rows · W`` (``rows · Wᵀ`` when ``transpose``) in the rollout's compute dtype, returned in
         ``rows``' dtype; no graph."""
-        weight = self._operand.T if transpose else self._operand
-        return _product(rows, weight, self.dtype)
+        weight = self._input_major if transpose else self._gate_major
+        return _product(rows, weight.T, self.dtype)
+
+    def _copy_of_weight(self, name: str, input_major: bool) -> Tensor:
+        """``[weight_ih || weight_hh]`` in the compute dtype, transposed when ``input_major``."""
+        cell = self.cell
+        inputs, hidden, gates = cell.input_size, cell.hidden_size, cell.weight_ih.shape[0]
+        shape = (inputs + hidden, gates) if input_major else (gates, inputs + hidden)
+        operand = self.buffers.get(name, shape, self.dtype, cell.weight_ih.device)
+        with torch.no_grad():
+            if input_major:  # both transposes written into one buffer: one copy, not a cat then a copy
+                operand[:inputs].copy_(cell.weight_ih.T)
+                operand[inputs:].copy_(cell.weight_hh.T)
+            else:
+                operand[:, :inputs].copy_(cell.weight_ih)
+                operand[:, inputs:].copy_(cell.weight_hh)
+        return operand
 
     def grad(
         self,
@@ -137,7 +150,7 @@ class RolloutLstm:
                 input_side.append(g if transpose else rows)
         if not gate_side:
             return tuple(grads)
-        gate_rows = self._rows("gate_rows", gate_side)  # [N, 4H]
+        gate_columns = self._columns(self._rows("gate_rows", gate_side))  # [4H, N]
         input_rows = self._rows("input_rows", input_side)  # [N, D + H]
         split = self.cell.weight_ih.shape[1]
         parts = []
@@ -145,7 +158,7 @@ class RolloutLstm:
             parameter = getattr(self.cell, name)
             positions = [i for i, tensor in enumerate(inputs) if tensor is parameter]
             if positions:
-                part = self._weight_gradient(name, gate_rows, input_rows[:, columns])
+                part = self._weight_gradient(name, gate_columns, input_rows[:, columns])
                 parts.append(part)
                 for i in positions:
                     grads[i] = part if grads[i] is None else grads[i] + part
@@ -158,8 +171,18 @@ class RolloutLstm:
         out = self.buffers.rows(name, rows, tuple(pieces[0].shape[1:]), self.dtype, pieces[0].device)
         return torch.cat(pieces, out=out)
 
-    def _weight_gradient(self, name: str, gate_rows: Tensor, input_rows: Tensor) -> Tensor:
-        """``gate_rowsᵀ input_rows`` (compute-dtype operands) in the pool's buffer for ``name``'s
+    def _columns(self, rows: Tensor) -> Tensor:
+        """``rows.T``, the weight gradient's left operand; in bfloat16 a contiguous copy in the pool,
+        because the product with a transposed view ran at half the speed (float32: within 15 %, less
+        than the copy costs; bench/bench_lstm_layout.py)."""
+        if rows.dtype != torch.bfloat16:
+            return rows.T
+        count, width = rows.shape
+        flat = self.buffers.rows("gate_columns", count * width, (), rows.dtype, rows.device)
+        return flat.view(width, count).copy_(rows.T)
+
+    def _weight_gradient(self, name: str, gate_columns: Tensor, input_rows: Tensor) -> Tensor:
+        """``gate_columns · input_rows`` (compute-dtype operands) in the pool's buffer for ``name``'s
         gradient."""
         parameter = getattr(self.cell, name)
         shape, device = tuple(parameter.shape), parameter.device
@@ -168,9 +191,9 @@ class RolloutLstm:
             out = torch.empty_like(out)  # still the .grad of an earlier backward: leave it intact
         with torch.no_grad():
             if self.dtype == parameter.dtype:
-                return torch.mm(gate_rows.T, input_rows, out=out)
+                return torch.mm(gate_columns, input_rows, out=out)
             low = self.buffers.get(f"grad.{name}.low", shape, self.dtype, device)
-            return out.copy_(torch.mm(gate_rows.T, input_rows, out=low))
+            return out.copy_(torch.mm(gate_columns, input_rows, out=low))
 
 
 def _product(left: Tensor, right: Tensor, dtype: torch.dtype) -> Tensor:
