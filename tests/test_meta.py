@@ -229,8 +229,9 @@ def test_non_adaptive_models_are_rejected():
 
 
 def compacted_run(model, loop, obs, actions, rewards, lengths):
-    """``batched_run``, but ended episodes are dropped from the batch at every chunk boundary (as the
-    trainer's rollout does); outputs are scattered back to the full batch."""
+    """``batched_run``, but ended episodes are dropped from the batch after the step that ends them
+    (as the trainer's rollout does), mid-chunk included; outputs are scattered back to the full
+    batch."""
     T, B = actions.shape
     mask = torch.stack([torch.arange(T) < n for n in lengths], dim=1).double()
     state = loop.start(B)
@@ -245,7 +246,7 @@ def compacted_run(model, loop, obs, actions, rewards, lengths):
         hidden, policy = out.hidden, torch.softmax(out.logits, -1)
         alive = torch.tensor([t < lengths[b] - 1 for b in slots.tolist()])
         loop.observe(state, out, alive)
-        if not state.rows and not alive.all() and alive.any():
+        if not alive.all() and alive.any():
             keep = torch.nonzero(alive).squeeze(1)
             loop.compact(state, keep)
             slots = slots[keep]
@@ -256,10 +257,13 @@ def compacted_run(model, loop, obs, actions, rewards, lengths):
 
 
 @pytest.mark.parametrize("first_order", [False, True])
-def test_dropping_ended_episodes_changes_nothing(first_order):
-    model, knowledge = make_model("cvmeta", max_updates=3)
-    obs, actions, rewards = make_episodes(knowledge, 12, B=3, seed=7)
-    lengths = [12, 5, 8]  # episode 1 leaves after the first chunk, episode 2 after the second
+@pytest.mark.parametrize("name", ["cvmeta", "savn"])
+def test_dropping_ended_episodes_changes_nothing(name, first_order):
+    model, knowledge = make_model(name, max_updates=3)
+    obs, actions, rewards = make_episodes(knowledge, 12, B=4, seed=7)
+    # Chunks of K = 3 steps: episode 1 leaves within the first chunk (while every episode still
+    # reads θ_0), episodes 2 and 3 within the second and third, after inner steps.
+    lengths = [12, 2, 5, 8]
     results = []
     for run in (batched_run, compacted_run):
         model.zero_grad(set_to_none=True)

@@ -81,12 +81,19 @@ class InnerLoopState:
 
     #: per-episode ``[B, ...]`` adapted parameters (training: all but :data:`LOW_RANK`).
     fast: dict[str, Tensor]
-    rows: list[Tensor] = field(default_factory=list)
+    #: the learned loss's rows ``[h_t || π_t]`` of the current chunk, each with the episode ids of
+    #: its batch rows.
+    rows: list[tuple[Tensor, Tensor | None]] = field(default_factory=list)
     updates: int = 0
     #: first order only: (inner gradients g_i, fast weights θ_{i+1}) of every inner step.
     records: list[tuple[dict[str, Tensor], dict[str, Tensor]]] = field(default_factory=list)
     #: training: episode index (into the starting batch) of each current row, increasing.
     ids: Tensor | None = None
+    #: training: per adapted parameter, the tensors the current chunk's steps read it from, each with
+    #: its episode ids: ``fast`` as the chunk began, and the fresh views of θ_0 that a compaction of
+    #: a still-unadapted (broadcast) parameter makes. The inner step differentiates with respect to
+    #: them; a compacted copy of an adapted one is a row selection of its source, so it adds none.
+    sources: dict[str, list[tuple[Tensor, Tensor]]] = field(default_factory=dict)
     batch_size: int = 0  # B at start
     #: training: low-rank updates of the LSTM matrices, ``-α δ [B, K, 4H]`` and ``[x || h] [B, K, D+H]``.
     left: Tensor | None = None
@@ -180,6 +187,7 @@ class InnerLoop:
         lstm = RolloutLstm(cell, record=self.meta_train, dtype=self.dtype, buffers=self.buffers)
         ids = torch.arange(batch_size, device=cell.weight_ih.device)
         state = InnerLoopState(fast=fast, ids=ids, batch_size=batch_size, lstm=lstm)
+        state.sources = {name: [(w, ids)] for name, w in fast.items()}
         if not self.meta_train:
             # Fixed per-slot blocks of low-rank factors: slot b's i-th inner step writes block i.
             columns = self.max_updates * self.steps
@@ -259,10 +267,12 @@ class InnerLoop:
     def observe(self, state: InnerLoopState, output: ModelOutput, alive: Tensor) -> bool:
         """Record the step's row ``[h_t || π_t]``; after k rows take the inner step for the episodes
         still running. Returns True when an inner step was taken."""
-        state.rows.append(torch.cat([output.hidden[0], torch.softmax(output.logits, dim=-1)], dim=-1))
+        row = torch.cat([output.hidden[0], torch.softmax(output.logits, dim=-1)], dim=-1)
+        state.rows.append((row, state.ids))
         if len(state.rows) < self.steps:
             return False
-        rows = torch.stack(state.rows, dim=1)
+        # Every episode still in the batch ran the whole chunk: its rows are in every step's batch.
+        rows = torch.stack([_align(r, ids, state.ids) for r, ids in state.rows], dim=1)
         state.rows = []  # SAVN resets the learned-loss buffer after every chunk of k
         if not self.meta_train:
             self.adapt(state, rows, alive & (state.slot_updates < self.max_updates))
@@ -273,18 +283,22 @@ class InnerLoop:
         return True
 
     def compact(self, state: InnerLoopState, keep: Tensor) -> None:
-        """Keep only the rows ``keep`` (increasing indices into the current batch) of ``state``.
-
-        Call it only between interaction chunks (no rows buffered): the next inner step
-        differentiates the learned loss of a chunk's k rows w.r.t. the very fast weights that
-        produced them, and a copy taken mid-chunk would miss the earlier rows. Dropped episodes must
-        never adapt again and must not contribute to the outer loss after this point. Recorded steps
-        keep their full-size tensors (their ``ids`` say which episodes their rows are)."""
-        if state.rows:
-            raise RuntimeError("compact() only between interaction chunks")
-        state.fast = {name: _take_rows(w, keep) for name, w in state.fast.items()}
-        if state.ids is not None:
-            state.ids = state.ids.index_select(0, keep)
+        """Keep only the rows ``keep`` (increasing indices into the current batch) of ``state``
+        (training only), at any step. Dropped episodes must never adapt again and must not contribute
+        to the outer loss after this point. Recorded steps keep their tensors (their ``ids`` say
+        which episodes their rows are), and the next inner step differentiates with respect to the
+        fast weights of the chunk's start, of which the kept rows are a selection."""
+        if not self.meta_train:
+            raise RuntimeError("compact() is for training rollouts (test time resets slots instead)")
+        state.ids = state.ids.index_select(0, keep)
+        params = dict(self.model.named_parameters())
+        for name, w in state.fast.items():
+            if w.dim() > 0 and w.stride(0) == 0:  # still θ_0 for every episode: a new view, no copy
+                # (a slice of the old view would send every episode's inner gradient to its row 0)
+                state.fast[name] = params[name].unsqueeze(0).expand(len(keep), *w.shape[1:])
+                state.sources[name].append((state.fast[name], state.ids))
+            else:
+                state.fast[name] = w.index_select(0, keep)
         if state.left is not None:
             self._set_low_rank(state, state.left.index_select(0, keep), state.right.index_select(0, keep))
 
@@ -298,15 +312,21 @@ class InnerLoop:
         names = list(state.fast)
         steps = state.chunk
         # create_graph: second order differentiates through the step; first order needs g_i's graph to φ.
+        sources = [(name, w, ids) for name in names for w, ids in state.sources[name]]
         grads = torch.autograd.grad(
             loss,
-            [state.fast[n] for n in names] + [s.gates for s in steps],
+            [w for _, w, _ in sources] + [s.gates for s in steps],
             create_graph=True,
             allow_unused=True,
         )
+        inner: dict[str, Tensor] = {}  # per-episode gradients, rows of the current batch
+        for (name, _, ids), g in zip(sources, grads[: len(sources)], strict=True):
+            if g is not None:
+                g = _align(g, ids, state.ids)
+                inner[name] = g if name not in inner else inner[name] + g
         new_fast, used = {}, {}
-        for name, g in zip(names, grads[: len(names)], strict=True):
-            w = state.fast[name]
+        for name in names:
+            w, g = state.fast[name], inner.get(name)
             if g is None:  # parameter outside the learned loss's reach: unchanged (SAVN)
                 new_fast[name] = w
             elif self.first_order:
@@ -314,10 +334,11 @@ class InnerLoop:
                 used[name] = g
             else:
                 new_fast[name] = w - self.inner_lr * g
-        self._append_low_rank(state, steps, grads[len(names) :])
+        self._append_low_rank(state, steps, grads[len(sources) :])
         if self.first_order:
             state.records.append((used, {n: new_fast[n] for n in used}))
         state.fast = new_fast
+        state.sources = {name: [(w, state.ids)] for name, w in new_fast.items()}
         state.updates += 1
 
     def _adapt_in_place(self, state: InnerLoopState, rows: Tensor, due: Tensor) -> None:
@@ -450,9 +471,3 @@ def _scatter(t: Tensor, ids: Tensor, size: int) -> Tensor:
     if len(ids) == size:
         return t
     return t.new_zeros(size, *t.shape[1:]).index_copy(0, ids, t)
-
-
-def _take_rows(w: Tensor, keep: Tensor) -> Tensor:
-    if w.dim() > 0 and w.stride(0) == 0:  # still the broadcast θ_0: stay a view, copy nothing
-        return w[:1].expand(len(keep), *w.shape[1:])
-    return w.index_select(0, keep)

@@ -168,19 +168,12 @@ class Actor:
         h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
         return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
 
-    def can_compact(self) -> bool:
-        """Plain models: always. Adaptive models: only between interaction chunks, because the next
-        inner step differentiates the learned loss of a chunk's k rows with respect to the very fast
-        weight tensors that produced them (a copy taken mid-chunk would miss the earlier rows)."""
-        return self.state is None or not self.state.rows
-
     def observe(self, output: ModelOutput, alive: Tensor) -> None:
         if self.inner is not None:
             self.inner.observe(self.state, output, alive)
 
     def compact(self, keep: Tensor) -> None:
-        """Keep only the rows ``keep`` (indices into the current batch) of the inner-loop state (call
-        it only when :meth:`can_compact`).
+        """Keep only the rows ``keep`` (indices into the current batch) of the inner-loop state.
 
         Ended episodes never adapt again and their later outputs are masked out of the loss, so
         dropping them changes nothing for the others (:meth:`InnerLoop.compact`)."""
@@ -272,7 +265,7 @@ def run_batch(
         actor.observe(out, torch.as_tensor(alive, device=device))
         if not alive.any():
             break
-        if not alive.all() and actor.can_compact():
+        if not alive.all():
             keep = torch.as_tensor(np.flatnonzero(alive), device=device)
             slots, slots_t = slots[alive], slots_t.index_select(0, keep)
             hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
