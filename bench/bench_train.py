@@ -7,7 +7,7 @@ worker start-up and scene loading are not counted (they are printed separately a
 Memory is the peak resident set of the trainer process, plus the largest async worker.
 
     python bench/bench_train.py [--models cvmeta,savn,mjolnir_o,a3c,sp] [--seconds 60] [--batch 32]
-                                [--modes batched,batched-bf16,async] [--workers 2]
+                                [--modes batched,batched-bf16,async] [--workers 2] [--rounds 1]
                                 [--scenes train:kitchen] [--json out.json]
 
 Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``: bfloat16 encoders
@@ -15,6 +15,10 @@ and LSTM products). A batched mode with ``@N`` (e.g. ``batched-bf16@2``) runs N 
 under ``torchrun`` (docs/training.md), each with ``threads / N`` threads and its own B episodes: on
 this 2-core machine two 1-thread ranks use the cores better than one 2-thread process. The ratio is
 the fastest batched mode over async.
+
+This machine's speed drifts by 10-20 % within minutes, so a ratio of two rates measured one after
+the other moves with it: ``--rounds R`` measures every (model, mode) R times for ``--seconds / R``
+each, interleaved (round 1 of every mode, then round 2, ...), and reports the mean rate.
 
 The originals train at about 42-49 frames/s (A3C), 34-46 (SAVN), 21-31 (Scene Priors), 33-61
 (MJOLNIR-o) on this kind of machine with 2 workers; targets are ten times the best of those.
@@ -83,6 +87,24 @@ def _measure(
     }
 
 
+def _run(model: str, mode: str, seconds: float, args: argparse.Namespace) -> dict:
+    """One (model, mode) measurement in a fresh interpreter (under torchrun for ``@N`` modes)."""
+    ranks = int(mode.partition("@")[2] or 1)
+    launcher = [sys.executable]
+    if ranks > 1:
+        launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone",
+                    "--nproc-per-node", str(ranks)]  # fmt: skip
+    command = [*launcher, __file__, "--one", model, mode, "--seconds", str(seconds),
+               "--batch", str(args.batch), "--workers", str(args.workers), "--scenes", args.scenes,
+               "--threads", str(max(args.threads // ranks, 1))]  # fmt: skip
+    out = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+    line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
+    if line is None:
+        print(out.stdout, out.stderr, file=sys.stderr)
+        raise SystemExit(f"{model} {mode} failed")
+    return json.loads(line[7:])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", default="cvmeta,savn,mjolnir_o,a3c,sp")
@@ -90,6 +112,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=1, help="interleaved repetitions (see above)")
     parser.add_argument(
         "--threads",
         type=int,
@@ -108,32 +131,23 @@ def main() -> None:
         return
 
     results = []
-    for model in args.models.split(","):
-        for mode in args.modes.split(","):
-            ranks = int(mode.partition("@")[2] or 1)
-            launcher = [sys.executable]
-            if ranks > 1:
-                launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone",
-                            "--nproc-per-node", str(ranks)]  # fmt: skip
-            command = [*launcher, __file__, "--one", model, mode, "--seconds", str(args.seconds),
-                       "--batch", str(args.batch), "--workers", str(args.workers), "--scenes", args.scenes,
-                       "--threads", str(max(args.threads // ranks, 1))]  # fmt: skip
-            out = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
-            line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
-            if line is None:
-                print(out.stdout, out.stderr, file=sys.stderr)
-                raise SystemExit(f"{model} {mode} failed")
-            result = json.loads(line[7:])
-            results.append(result)
-            print(
-                f"{model:10s} {mode:14s} {result['frames_per_s']:8.1f} frames/s  "
-                f"({result['episodes']:.0f} episodes, mean length {result['mean_length']:.1f}, "
-                f"start-up {result['startup_s']:.1f} s, RSS {result['rss_mb']:.0f} MB"
-                + (f", worker {result['worker_rss_mb']:.0f} MB" if mode.startswith("async") else "")
-                + (f" per rank x {ranks}" if ranks > 1 else "")
-                + ")",
-                flush=True,
-            )
+    seconds = args.seconds / args.rounds
+    for round_ in range(args.rounds):
+        for model in args.models.split(","):
+            for mode in args.modes.split(","):
+                result = _run(model, mode, seconds, args)
+                results.append(result)
+                ranks = int(mode.partition("@")[2] or 1)
+                print(
+                    (f"[{round_ + 1}/{args.rounds}] " if args.rounds > 1 else "")
+                    + f"{model:10s} {mode:14s} {result['frames_per_s']:8.1f} frames/s  "
+                    f"({result['episodes']:.0f} episodes, mean length {result['mean_length']:.1f}, "
+                    f"start-up {result['startup_s']:.1f} s, RSS {result['rss_mb']:.0f} MB"
+                    + (f", worker {result['worker_rss_mb']:.0f} MB" if mode.startswith("async") else "")
+                    + (f" per rank x {ranks}" if ranks > 1 else "")
+                    + ")",
+                    flush=True,
+                )
 
     modes = args.modes.split(",")
     print(
@@ -141,7 +155,10 @@ def main() -> None:
         + " ".join(f"{m:>13s}" for m in modes)
         + f" {'ratio':>7s} {'target':>7s} {'reference':>9s}"
     )
-    by = {(r["model"], r["mode"]): r["frames_per_s"] for r in results}
+    rates: dict[tuple[str, str], list[float]] = {}
+    for r in results:
+        rates.setdefault((r["model"], r["mode"]), []).append(r["frames_per_s"])
+    by = {key: sum(values) / len(values) for key, values in rates.items()}
     for model in args.models.split(","):
         batched = max((by[model, m] for m in modes if m.startswith("batched")), default=float("nan"))
         asynchronous = by.get((model, "async"), float("nan"))
