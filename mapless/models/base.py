@@ -251,14 +251,20 @@ def shared_row_gcn_layer(
 
     Every node's row starts with the same in-view vector ``v``, so ``Â · [1 vᵀ]`` is
     ``rowsum(Â) vᵀ``: the layer is ``rowsum(Â) ⊗ (W_v v) + Â · F · W_Fᵀ`` (exact up to rounding),
-    and the second term is shared by the whole batch.
+    and the second term is shared by the whole batch. The outer product is a matrix product with one
+    column, and the shared term is added in place: the ``[C, B, out]`` result is written once, in the
+    products' dtype (bfloat16 under autocast), and its backward reduces the gradient with two
+    matrix-vector products instead of forming two more tensors of its size. Callers may apply their
+    activation in place.
     """
     n_view = in_view.shape[-1]
     weight_view, weight_nodes = layer.weight[:, :n_view], layer.weight[:, n_view:]
     per_episode = in_view @ weight_view.T  # [B, out]
     shared = (adjacency @ node_features) @ weight_nodes.T  # [C, out]
-    out = adjacency.sum(-1)[:, None, None] * per_episode.unsqueeze(0) + shared.unsqueeze(1)
-    return out if layer.bias is None else out + layer.bias
+    nodes, (batch, width) = adjacency.shape[0], per_episode.shape
+    outer = torch.mm(adjacency.sum(-1, keepdim=True), per_episode.reshape(1, batch * width))
+    out = outer.view(nodes, batch, width).add_(shared.unsqueeze(1).to(outer.dtype))
+    return out if layer.bias is None else out.add_(layer.bias.to(out.dtype))
 
 
 def propagate(adjacency: Tensor, x: Tensor) -> Tensor:

@@ -75,9 +75,11 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         return self.per_in_view(in_view, self._hierarchical_gcn)
 
     def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
-        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
-        x = F.relu(gcn_layer(self.A, x, self.W1))
-        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 64]
+        x = F.relu(
+            shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0), inplace=True
+        )  # [C, B, C + 300]
+        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
+        x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 64]
         return x.permute(1, 2, 0)
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:

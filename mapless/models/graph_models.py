@@ -46,9 +46,11 @@ class ScenePriorsGraph(nn.Module):
         # Node features [class embedding (the same for every node) || word embedding of the node].
         class_embed = self.get_class_embed(in_view)
         word_embed = self.get_word_embed(self.all_glove)
-        x = F.relu(shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0))  # [C, B, 1024]
-        x = F.relu(gcn_layer(self.A, x, self.W1))
-        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 1]
+        x = F.relu(
+            shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0), inplace=True
+        )  # [C, B, 1024]
+        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
+        x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
 
 

@@ -48,9 +48,11 @@ class ObjectGcnMixin:
     def _in_view_layers(self, in_view: Tensor) -> Tensor:
         """X3 ``[B, C, 5]``: the layers that see the observation only through the in-view vector."""
         # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
-        x = F.relu(shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0))  # [C, B, C + 300]
-        x = F.relu(gcn_layer(self.A, x, self.W1))
-        return F.relu(gcn_layer(self.A, x, self.W2)).transpose(0, 1)
+        x = F.relu(
+            shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0), inplace=True
+        )  # [C, B, C + 300]
+        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
+        return F.relu(gcn_layer(self.A, x, self.W2), inplace=True).transpose(0, 1)
 
 
 class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
