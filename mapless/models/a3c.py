@@ -26,6 +26,7 @@ from mapless.models.base import (
     pointwise_conv,
     tile,
 )
+from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LearnedLossMixin
 
 BASE_EMBEDDING = EMBED * GRID * GRID  # 3136
@@ -39,7 +40,7 @@ class SavnEmbeddingMixin:
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv2d(EMBED + EMBED + 10, EMBED, 1)
-        self.dropout = nn.Dropout(self.config.dropout)
+        self.dropout = Dropout(self.config.dropout)
 
     def _base_embedding(self, obs: dict[str, Tensor], prev_policy: Tensor) -> Tensor:
         image = self.dropout(F.relu(pointwise_conv(self.conv1, obs["features"])))

@@ -38,6 +38,7 @@ from mapless.models.base import (
     pointwise_conv_of_parts,
     shared_row_gcn_layer,
 )
+from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LearnedLossMixin
 
 
@@ -62,7 +63,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
-        self.dropout = nn.Dropout(config.dropout)
+        self.dropout = Dropout(config.dropout)
         self.lstm = nn.LSTMCell(config.fusion_channels * nodes, self.hidden_size)
         self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
         self.critic_linear = nn.Linear(self.hidden_size, 1)

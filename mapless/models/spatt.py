@@ -26,6 +26,7 @@ from mapless.models.base import (
     pointwise_conv,
     unit,
 )
+from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LearnedLossMixin
 
 
@@ -42,7 +43,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_action = nn.Conv1d(NUM_ACTIONS, EMBED, 1)
         self.embed_memory = nn.Conv1d(hidden, EMBED, 1)
         self.memory_alpha = nn.Conv1d(hidden, 3, 1)
-        self.dropout = nn.Dropout(config.dropout)
+        self.dropout = Dropout(config.dropout)
         self.lstm = nn.LSTMCell(EMBED * GRID * GRID, hidden)
         self.actor_linear = nn.Linear(hidden, NUM_ACTIONS)
         self.critic_linear = nn.Linear(hidden, 1)
