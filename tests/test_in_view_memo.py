@@ -36,7 +36,16 @@ def test_memo_starts_afresh_past_max_rows():
     assert len(memo) == 2 and memo.computed_rows == 4
 
 
-@pytest.mark.parametrize("name", ["cvmeta", "mjolnir_o"])
+def test_unbounded_memo_never_starts_afresh():
+    memo = InViewMemo(max_rows=None)
+    rows = torch.eye(5000)
+    memo(rows[:3000], lambda r: r * 2)
+    out = memo(rows[2000:], lambda r: r * 2)
+    assert torch.equal(out, rows[2000:] * 2)
+    assert len(memo) == 5000 and memo.computed_rows == 5000
+
+
+@pytest.mark.parametrize("name", ["cvmeta", "mjolnir_o", "sp"])
 def test_memoized_rollout_has_the_same_outputs_and_gradients(name):
     """Five steps of four episodes drawn from four observations with three distinct in-view rows
     (0 and 3 see the same categories in other boxes): the loss and every parameter gradient match

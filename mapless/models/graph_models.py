@@ -69,8 +69,9 @@ class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
-        x = torch.cat([self._base_embedding(obs, prev_policy), self.graph(obs["context"][..., 0])], dim=1)
-        return x, None
+        # The graph sees the observation only through the in-view row: once per distinct row.
+        graph = self.per_in_view(obs["context"][..., 0], self.graph)
+        return torch.cat([self._base_embedding(obs, prev_policy), graph], dim=1), None
 
 
 class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):

@@ -25,11 +25,12 @@ class InViewMemo:
     is in use).
 
     Rows are matched on their exact bytes. ``max_rows`` bounds the memory: when a batch would
-    take the store past it, the store starts afresh (evaluations run for hours of simulated time;
-    a training rollout stays far below the default).
+    take the store past it, the store starts afresh (evaluations run for hours of simulated time).
+    A training rollout passes None: its steps' outputs hold every stored result's graph until the
+    update anyway, so starting afresh would free nothing and only lose the reuse.
     """
 
-    def __init__(self, max_rows: int = 2048):
+    def __init__(self, max_rows: int | None = 2048):
         self.max_rows = max_rows
         self.computed_rows = 0  # rows sent through ``compute`` so far (for tests and benchmarks)
         self.requested_rows = 0
@@ -42,7 +43,7 @@ class InViewMemo:
     def __call__(self, rows: Tensor, compute: Callable[[Tensor], Tensor]) -> Tensor:
         keys = [row.tobytes() for row in rows.detach().cpu().numpy()]
         fresh = list(dict.fromkeys(k for k in keys if k not in self._where))
-        if len(self._where) + len(fresh) > self.max_rows:
+        if self.max_rows is not None and len(self._where) + len(fresh) > self.max_rows:
             self._chunks, self._where = [], {}
             fresh = list(dict.fromkeys(keys))
         if fresh:

@@ -83,7 +83,7 @@ class InnerLoopState:
     fast: dict[str, Tensor]
     #: the learned loss's rows ``[h_t || π_t]`` of the current chunk, each with the episode ids of
     #: its batch rows.
-    rows: list[tuple[Tensor, Tensor | None]] = field(default_factory=list)
+    rows: list[tuple[Tensor, Tensor]] = field(default_factory=list)
     updates: int = 0
     #: first order only: (inner gradients g_i, fast weights θ_{i+1}) of every inner step.
     records: list[tuple[dict[str, Tensor], dict[str, Tensor]]] = field(default_factory=list)
@@ -285,9 +285,10 @@ class InnerLoop:
     def compact(self, state: InnerLoopState, keep: Tensor) -> None:
         """Keep only the rows ``keep`` (increasing indices into the current batch) of ``state``
         (training only), at any step. Dropped episodes must never adapt again and must not contribute
-        to the outer loss after this point. Recorded steps keep their tensors (their ``ids`` say
-        which episodes their rows are), and the next inner step differentiates with respect to the
-        fast weights of the chunk's start, of which the kept rows are a selection."""
+        to the outer loss after this point. Recorded steps and rows keep their tensors (their ``ids``
+        say which episodes their rows are); the next inner step differentiates with respect to the
+        chunk's :attr:`InnerLoopState.sources`, so the gradient of every row of the chunk, before
+        and after this call, reaches the episode's fast weights."""
         if not self.meta_train:
             raise RuntimeError("compact() is for training rollouts (test time resets slots instead)")
         state.ids = state.ids.index_select(0, keep)

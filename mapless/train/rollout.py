@@ -140,7 +140,7 @@ class Actor:
     def start(self, batch_size: int) -> None:
         # The parameters stay fixed until the update: the object GCNs' results can be reused
         # across the rollout's steps (mapless.models.memo).
-        self.memo = InViewMemo()
+        self.memo = InViewMemo(max_rows=None)
         self.state = self.inner.start(batch_size) if self.inner is not None else None
         if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
             self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype, buffers=self.buffers)
