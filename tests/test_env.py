@@ -30,6 +30,36 @@ def far_episode(library, target="Toaster") -> tuple[Episode, int]:
     return Episode(SCENE, target, data.pose_tuple(pose)), pose
 
 
+def test_distances_are_those_of_a_pose_by_pose_bfs(library):
+    """The level-at-once BFS against the textbook queue over the successor graph, for every instance
+    of the scene as the goal, all of them together, and none."""
+    from collections import deque
+
+    data = library[SCENE]
+    into: dict[int, set[int]] = {q: set() for q in range(data.n_poses)}
+    for p in range(data.n_poses):
+        for q in data.successors[p]:
+            if q != p:
+                into[int(q)].add(p)
+
+    def queue_bfs(goal):
+        dist = np.full(data.n_poses, -1)
+        queue = deque(np.flatnonzero(goal))
+        dist[list(queue)] = 0
+        while queue:
+            q = queue.popleft()
+            for p in into[int(q)]:
+                if dist[p] < 0:
+                    dist[p] = dist[q] + 1
+                    queue.append(p)
+        return dist
+
+    goals = [data.goal_mask_for_instances(np.array([i])) for i in np.unique(data.view_instance)]
+    goals += [np.ones(data.n_poses, dtype=bool), np.zeros(data.n_poses, dtype=bool)]
+    for goal in goals:
+        np.testing.assert_array_equal(data.distances_to(goal), queue_bfs(goal))
+
+
 def optimal_actions(data, pose: int, target: str) -> list[int]:
     """Greedy descent of the BFS distance field, then Done."""
     distances = data.target_distances(target)

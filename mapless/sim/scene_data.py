@@ -8,7 +8,6 @@ export). An episode step is array indexing into it.
 from __future__ import annotations
 
 import functools
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -119,19 +118,33 @@ class SceneData:
                 preds[q].append(p)
         return [np.asarray(sorted(x), dtype=np.int64) for x in preds]
 
+    @functools.cached_property
+    def _predecessor_csr(self) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`predecessors` as CSR arrays ``(indptr [P + 1], indices)``."""
+        counts = np.fromiter((len(p) for p in self.predecessors), dtype=np.int64, count=self.n_poses)
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        indices = np.concatenate(self.predecessors) if self.n_poses else np.zeros(0, np.int64)
+        return indptr, indices.astype(np.int64, copy=False)
+
     def distances_to(self, goal: np.ndarray) -> np.ndarray:
         """Reverse BFS: number of movement actions from every pose to the nearest goal pose
-        (-1 where unreachable). The optimal episode length (SAVN convention) is this + 1 (Done)."""
+        (-1 where unreachable). The optimal episode length (SAVN convention) is this + 1 (Done).
+
+        Level by level over the whole frontier at once (array operations, not a queue of poses): a
+        training sampler meets every target of every scene once, and a queue in Python took ~7 ms
+        per target, a tenth of a short benchmark's time."""
         dist = np.full(self.n_poses, -1, dtype=np.int32)
-        queue = deque(np.flatnonzero(goal).tolist())
-        dist[list(queue)] = 0
-        preds = self.predecessors
-        while queue:
-            q = queue.popleft()
-            for p in preds[q]:
-                if dist[p] < 0:
-                    dist[p] = dist[q] + 1
-                    queue.append(p)
+        frontier = np.flatnonzero(goal)
+        dist[frontier] = 0
+        indptr, indices = self._predecessor_csr
+        level = 0
+        while frontier.size:
+            level += 1
+            starts, counts = indptr[frontier], np.diff(indptr)[frontier]
+            offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+            reached = indices[np.repeat(starts, counts) + offsets]
+            frontier = np.unique(reached[dist[reached] < 0])
+            dist[frontier] = level
         return dist
 
     def target_distances(self, object_type: str) -> np.ndarray:
