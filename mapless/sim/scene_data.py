@@ -137,10 +137,11 @@ class SceneData:
         frontier = np.flatnonzero(goal)
         dist[frontier] = 0
         indptr, indices = self._predecessor_csr
+        degree = np.diff(indptr)
         level = 0
         while frontier.size:
             level += 1
-            starts, counts = indptr[frontier], np.diff(indptr)[frontier]
+            starts, counts = indptr[frontier], degree[frontier]
             offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
             reached = indices[np.repeat(starts, counts) + offsets]
             frontier = np.unique(reached[dist[reached] < 0])
