@@ -3,12 +3,15 @@
 Every ATen operator a real ``BatchedTrainer.update()`` dispatches (rollout, backward, optimizer
 step) is timed under a ``TorchDispatchMode``, and the totals per operator are printed with one
 column per model: milliseconds per update and calls per update. Timing every call adds overhead
-(~10 µs per operator), so the absolute figures run high; what the table is for is the comparison:
+(~10 µs per operator), so the operator figures run high; each round therefore also runs one untimed
+update per model, and the table's first line is their mean wall time. The models take turns update
+by update (this machine's speed drifts within minutes). What the table is for is the comparison:
 which operators one model spends more on than another (``cvmeta`` against ``savn`` by default,
-docs/training.md "Why cvmeta trains slower than savn").
+docs/training.md "Why cvmeta trains slower than savn"). ``--shapes`` splits the matrix products by
+operand shapes, which tells an LSTM product (2048 gate columns) from a GCN one (101 nodes).
 
     python bench/profile_update.py [--models cvmeta,savn] [--updates 6] [--batch 32]
-                                   [--precision bf16] [--threads 1] [--top 25]
+                                   [--precision bf16] [--threads 1] [--top 25] [--shapes]
 """
 
 from __future__ import annotations
@@ -19,12 +22,16 @@ from collections import defaultdict
 
 from torch.utils._python_dispatch import TorchDispatchMode
 
+MATRIX_PRODUCTS = {"mm", "bmm", "addmm", "baddbmm"}
+
 
 class OperatorTimer(TorchDispatchMode):
-    """Seconds and calls per ATen operator (overload packet name) while active."""
+    """Seconds and calls per ATen operator (overload packet name) while active; with
+    ``shapes``, matrix products are keyed by their operands' shapes too."""
 
-    def __init__(self) -> None:
+    def __init__(self, shapes: bool = False) -> None:
         super().__init__()
+        self.shapes = shapes
         self.seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
 
@@ -32,13 +39,15 @@ class OperatorTimer(TorchDispatchMode):
         began = time.perf_counter()
         out = func(*args, **(kwargs or {}))
         name = func.overloadpacket.__name__
+        if self.shapes and name in MATRIX_PRODUCTS:
+            name += " " + "x".join(str(list(a.shape)) for a in args if hasattr(a, "shape"))
         self.seconds[name] += time.perf_counter() - began
         self.calls[name] += 1
         return out
 
 
-def profile(model: str, updates: int, batch: int, precision: str, threads: int) -> dict:
-    """Per-operator totals over ``updates`` updates of a fresh trainer (after two warm-up ones)."""
+def make_trainer(model: str, batch: int, precision: str, threads: int):
+    """A fresh batched trainer on the kitchens, after two warm-up updates."""
     from mapless.config import apply_overrides, from_dict
     from mapless.train.batched import BatchedTrainer
     from mapless.train.config import TrainConfig
@@ -50,17 +59,31 @@ def profile(model: str, updates: int, batch: int, precision: str, threads: int) 
     trainer._setup(None)
     for _ in range(2):
         trainer.update()
-    timer, frames = OperatorTimer(), 0
-    began = time.perf_counter()
-    with timer:
-        for _ in range(updates):
-            frames += trainer.update()["trajectory"].frames
-    wall = time.perf_counter() - began
+    return trainer
+
+
+def profile(models: list[str], updates: int, batch: int, precision: str, threads: int, shapes: bool) -> dict:
+    """Per-operator totals per update over ``updates`` timed updates of each model, plus the
+    wall time of as many untimed ones; the models alternate update by update."""
+    trainers = {m: make_trainer(m, batch, precision, threads) for m in models}
+    timers = {m: OperatorTimer(shapes) for m in models}
+    wall = dict.fromkeys(models, 0.0)
+    frames = dict.fromkeys(models, 0)
+    for _ in range(updates):
+        for m, trainer in trainers.items():
+            with timers[m]:
+                trainer.update()
+            began = time.perf_counter()
+            frames[m] += trainer.update()["trajectory"].frames
+            wall[m] += time.perf_counter() - began
     return {
-        "wall_ms": wall / updates * 1e3,
-        "frames": frames / updates,
-        "ms": {k: v / updates * 1e3 for k, v in timer.seconds.items()},
-        "calls": {k: v / updates for k, v in timer.calls.items()},
+        m: {
+            "wall_ms": wall[m] / updates * 1e3,
+            "frames": frames[m] / updates,
+            "ms": {k: v / updates * 1e3 for k, v in timers[m].seconds.items()},
+            "calls": {k: v / updates for k, v in timers[m].calls.items()},
+        }
+        for m in models
     }
 
 
@@ -72,17 +95,18 @@ def main() -> None:
     parser.add_argument("--precision", default="bf16", choices=["fp32", "bf16"])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--top", type=int, default=25)
+    parser.add_argument("--shapes", action="store_true", help="matrix products by operand shapes")
     args = parser.parse_args()
 
     models = args.models.split(",")
-    results = {m: profile(m, args.updates, args.batch, args.precision, args.threads) for m in models}
+    results = profile(models, args.updates, args.batch, args.precision, args.threads, args.shapes)
     header = "".join(f" {m + ' ms':>12s} {'calls':>7s}" for m in models)
     print(f"per update, B = {args.batch}, {args.precision}, {args.threads} thread(s)")
-    for label, key in [("wall (timed)", "wall_ms"), ("frames", "frames")]:
+    for label, key in [("wall (untimed)", "wall_ms"), ("frames (untimed)", "frames")]:
         print(f"{label:22s}" + "".join(f" {results[m][key]:12.0f} {'':7s}" for m in models))
     totals = {m: (sum(results[m]["ms"].values()), sum(results[m]["calls"].values())) for m in models}
     print(f"{'all operators':22s}" + "".join(f" {totals[m][0]:12.0f} {totals[m][1]:7.0f}" for m in models))
-    print(f"\n{'operator':22s}{header}")
+    print(f"\n{'operator':22s}{header}" if not args.shapes else f"\n{header}  operator")
     names = {name for m in models for name in results[m]["ms"]}
     by_first = sorted(names, key=lambda n: -max(results[m]["ms"].get(n, 0.0) for m in models))
     for name in by_first[: args.top]:
@@ -90,7 +114,7 @@ def main() -> None:
             f" {results[m]['ms'].get(name, 0.0):12.1f} {results[m]['calls'].get(name, 0.0):7.0f}"
             for m in models
         )
-        print(f"{name[:22]:22s}{cells}")
+        print(f"{name[:22]:22s}{cells}" if not args.shapes else f"{cells}  {name}")
 
 
 if __name__ == "__main__":
