@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from mapless.models.base import gcn_layer, shared_row_gcn_layer
+from mapless.models.base import gcn_layer, shared_gcn_term, shared_row_gcn_layer
 
 C, B, FEATURES = 6, 4, 5
 
@@ -20,6 +20,10 @@ def _inputs(bias: bool, seed: int = 0):
     return adjacency, in_view, node_features, layer
 
 
+def _factored_first_layer(adjacency, in_view, node_features, layer):
+    return shared_row_gcn_layer(adjacency, in_view, shared_gcn_term(adjacency, node_features, layer), layer)
+
+
 def _plain_first_layer(adjacency, in_view, node_features, layer):
     """``layer(Â · [v || F])`` per episode with the ``[B, C, C + D]`` input formed, node-major out."""
     rows = torch.cat([in_view.unsqueeze(1).expand(B, C, C), node_features.expand(B, C, FEATURES)], -1)
@@ -31,7 +35,7 @@ def test_shared_row_layer_equals_the_formed_input(bias):
     adjacency, in_view, node_features, layer = _inputs(bias)
     wrt = [adjacency, in_view, node_features, *layer.parameters()]
     expected = _plain_first_layer(adjacency, in_view, node_features, layer)
-    got = shared_row_gcn_layer(adjacency, in_view, node_features, layer)
+    got = _factored_first_layer(adjacency, in_view, node_features, layer)
     torch.testing.assert_close(got, expected)
     upstream = torch.randn_like(expected)
     # In-place activation on the result, as the models apply it.
@@ -49,7 +53,7 @@ def test_shared_row_layer_second_order():
         (g,) = torch.autograd.grad(out, layer.weight, create_graph=True)
         return torch.autograd.grad((g**2).sum(), [adjacency, in_view])
 
-    for a, e in zip(hessian_vector(shared_row_gcn_layer), hessian_vector(_plain_first_layer), strict=True):
+    for a, e in zip(hessian_vector(_factored_first_layer), hessian_vector(_plain_first_layer), strict=True):
         torch.testing.assert_close(a, e)
 
 
@@ -57,9 +61,9 @@ def test_shared_row_layer_stays_in_bfloat16_under_autocast():
     *tensors, layer = _inputs(bias=False, seed=5)
     adjacency, in_view, node_features = (t.detach().float() for t in tensors)
     layer = layer.float()
-    full = shared_row_gcn_layer(adjacency, in_view, node_features, layer)
+    full = _factored_first_layer(adjacency, in_view, node_features, layer)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        low = shared_row_gcn_layer(adjacency, in_view, node_features, layer)
+        low = _factored_first_layer(adjacency, in_view, node_features, layer)
     assert low.dtype == torch.bfloat16 and full.dtype == torch.float32
     torch.testing.assert_close(low.float(), full, atol=0.05, rtol=0.02)
 

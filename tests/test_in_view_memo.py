@@ -45,6 +45,19 @@ def test_unbounded_memo_never_starts_afresh():
     assert len(memo) == 5000 and memo.computed_rows == 5000
 
 
+def test_memo_computes_a_constant_once_and_keeps_it_when_the_rows_start_afresh():
+    memo, calls = InViewMemo(max_rows=1), []
+
+    def term():
+        calls.append(1)
+        return torch.ones(2)
+
+    first = memo.constant("term", term)
+    memo(torch.eye(2), lambda r: r * 2)  # two rows past max_rows = 1: the row store restarts
+    assert memo.constant("term", term) is first and len(calls) == 1
+    assert memo.constant("other", lambda: torch.zeros(1)).shape == (1,) and memo.computed_constants == 2
+
+
 @pytest.mark.parametrize("name", ["cvmeta", "mjolnir_o", "sp"])
 def test_memoized_rollout_has_the_same_outputs_and_gradients(name):
     """Five steps of four episodes drawn from four observations with three distinct in-view rows
@@ -75,6 +88,7 @@ def test_memoized_rollout_has_the_same_outputs_and_gradients(name):
         memoized = rollout_loss()
     memo_grads = torch.autograd.grad(memoized, params)
     assert memo.computed_rows == 3 and memo.requested_rows == 20
+    assert memo.computed_constants == 1  # the GCN's first-layer shared term, once for five steps
     torch.testing.assert_close(memoized, plain)
     for got, want in zip(memo_grads, plain_grads, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)

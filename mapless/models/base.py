@@ -191,6 +191,12 @@ class NavModel(nn.Module):
         memo = self._in_view_memo
         return compute(in_view) if memo is None else memo(in_view, compute)
 
+    def fixed_term(self, key: str, compute: Callable[[], Tensor]) -> Tensor:
+        """``compute()`` of a term that depends on the parameters alone: once per active memo
+        (:meth:`InViewMemo.constant`), at every call without one."""
+        memo = self._in_view_memo
+        return compute() if memo is None else memo.constant(key, compute)
+
 
 class RecurrentNavModel(NavModel, abc.ABC):
     """A model of the form encoder -> ``LSTMCell`` (``self.lstm``) -> actor/critic heads on h.
@@ -243,28 +249,31 @@ def lstm_state_from_gates(gates: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     return h_next, c_next
 
 
-def shared_row_gcn_layer(
-    adjacency: Tensor, in_view: Tensor, node_features: Tensor, layer: nn.Linear
-) -> Tensor:
-    """``layer(Â · [in_view repeated for every node || node_features])``, node-major ``[C, B, out]``:
-    the first layer of MJOLNIR's object GCN, without forming its ``[B, C, C + D]`` input.
+def shared_row_gcn_layer(adjacency: Tensor, in_view: Tensor, shared: Tensor, layer: nn.Linear) -> Tensor:
+    """``layer(Â · [in_view repeated for every node || F])``, node-major ``[C, B, out]``, given
+    ``shared = shared_gcn_term(Â, F, layer)``: the first layer of MJOLNIR's object GCN, without
+    forming its ``[B, C, C + D]`` input.
 
     Every node's row starts with the same in-view vector ``v``, so ``Â · [1 vᵀ]`` is
     ``rowsum(Â) vᵀ``: the layer is ``rowsum(Â) ⊗ (W_v v) + Â · F · W_Fᵀ`` (exact up to rounding),
-    and the second term is shared by the whole batch. The outer product is a matrix product with one
+    and the second term depends on the parameters alone, so callers compute it once for as long as
+    they stay fixed (:meth:`NavModel.fixed_term`). The outer product is a matrix product with one
     column, and the shared term is added in place: the ``[C, B, out]`` result is written once, in the
     products' dtype (bfloat16 under autocast), and its backward reduces the gradient with two
     matrix-vector products instead of forming two more tensors of its size. Callers may apply their
     activation in place.
     """
-    n_view = in_view.shape[-1]
-    weight_view, weight_nodes = layer.weight[:, :n_view], layer.weight[:, n_view:]
-    per_episode = in_view @ weight_view.T  # [B, out]
-    shared = (adjacency @ node_features) @ weight_nodes.T  # [C, out]
+    per_episode = in_view @ layer.weight[:, : in_view.shape[-1]].T  # [B, out]
     nodes, (batch, width) = adjacency.shape[0], per_episode.shape
     outer = torch.mm(adjacency.sum(-1, keepdim=True), per_episode.reshape(1, batch * width))
     out = outer.view(nodes, batch, width).add_(shared.unsqueeze(1).to(outer.dtype))
     return out if layer.bias is None else out.add_(layer.bias.to(out.dtype))
+
+
+def shared_gcn_term(adjacency: Tensor, node_features: Tensor, layer: nn.Linear) -> Tensor:
+    """``Â · F · W_Fᵀ`` ``[C, out]``, the batch-independent term of :func:`shared_row_gcn_layer`
+    (``F``: node features ``[C, D]``; ``W_F``: the last ``D`` columns of ``layer``, which read them)."""
+    return (adjacency @ node_features) @ layer.weight[:, -node_features.shape[-1] :].T
 
 
 def propagate(adjacency: Tensor, x: Tensor) -> Tensor:

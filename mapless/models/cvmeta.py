@@ -36,6 +36,7 @@ from mapless.models.base import (
     normalized_adjacency_parameter,
     pointwise_conv,
     pointwise_conv_of_parts,
+    shared_gcn_term,
     shared_row_gcn_layer,
 )
 from mapless.models.dropout import Dropout
@@ -76,9 +77,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         return self.per_in_view(in_view, self._hierarchical_gcn)
 
     def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
-        x = F.relu(
-            shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0), inplace=True
-        )  # [C, B, C + 300]
+        shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, C + 300]
         x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
         x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 64]
         return x.permute(1, 2, 0)

@@ -21,6 +21,7 @@ from mapless.models.base import (
     RecurrentNavModel,
     gcn_layer,
     normalized_adjacency_parameter,
+    shared_gcn_term,
     shared_row_gcn_layer,
 )
 from mapless.models.learned_loss import LearnedLossMixin
@@ -42,13 +43,16 @@ class ScenePriorsGraph(nn.Module):
         self.W2 = nn.Linear(1024, 1, bias=False)
         self.final_mapping = nn.Linear(num_categories, GRAPH_EMBEDDING)
 
-    def forward(self, in_view: Tensor) -> Tensor:
+    def shared_term(self) -> Tensor:
+        """The first layer's batch-independent term (:func:`shared_gcn_term`), from the parameters."""
+        return shared_gcn_term(self.A, self.get_word_embed(self.all_glove), self.W0)
+
+    def forward(self, in_view: Tensor, shared: Tensor | None = None) -> Tensor:
+        """``shared``: :meth:`shared_term`, when the caller keeps it across batches."""
         # Node features [class embedding (the same for every node) || word embedding of the node].
         class_embed = self.get_class_embed(in_view)
-        word_embed = self.get_word_embed(self.all_glove)
-        x = F.relu(
-            shared_row_gcn_layer(self.A, class_embed, word_embed, self.W0), inplace=True
-        )  # [C, B, 1024]
+        shared = self.shared_term() if shared is None else shared
+        x = F.relu(shared_row_gcn_layer(self.A, class_embed, shared, self.W0), inplace=True)  # [C, B, 1024]
         x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
         x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
@@ -70,7 +74,8 @@ class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
         # The graph sees the observation only through the in-view row: once per distinct row.
-        graph = self.per_in_view(obs["context"][..., 0], self.graph)
+        shared = self.fixed_term("graph", self.graph.shared_term)
+        graph = self.per_in_view(obs["context"][..., 0], lambda rows: self.graph(rows, shared))
         return torch.cat([self._base_embedding(obs, prev_policy), graph], dim=1), None
 
 

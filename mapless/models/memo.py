@@ -9,6 +9,11 @@ parameters stay fixed (one training rollout, one evaluation) an :class:`InViewMe
 distinct row through it once and hands out the stored result afterwards. Results keep their
 autograd history, so the gradient of every step that used a stored row flows into the one
 computation that produced it: the same gradient as without the memo, up to rounding.
+
+The same holds for the terms those computations share across rows, which depend on the parameters
+alone (the GCNs' first-layer term ``Â · F · W_Fᵀ`` of :func:`~mapless.models.base.shared_row_gcn_layer`):
+:meth:`InViewMemo.constant` computes each once while the memo is in use, where every step would
+compute (and backpropagate) it again.
 """
 
 from __future__ import annotations
@@ -34,8 +39,10 @@ class InViewMemo:
         self.max_rows = max_rows
         self.computed_rows = 0  # rows sent through ``compute`` so far (for tests and benchmarks)
         self.requested_rows = 0
+        self.computed_constants = 0
         self._chunks: list[Tensor] = []
         self._where: dict[bytes, tuple[int, int]] = {}  # row bytes -> (chunk, row in chunk)
+        self._constants: dict[str, Tensor] = {}
 
     def __len__(self) -> int:
         return len(self._where)
@@ -55,6 +62,14 @@ class InViewMemo:
             self.computed_rows += len(fresh)
         self.requested_rows += len(keys)
         return self._gather([self._where[k] for k in keys], rows.device)
+
+    def constant(self, key: str, compute: Callable[[], Tensor]) -> Tensor:
+        """``compute()`` of a parameter-only term, computed on the first call with ``key`` and handed
+        out afterwards (starting the row store afresh keeps it: the parameters have not changed)."""
+        if key not in self._constants:
+            self._constants[key] = compute()
+            self.computed_constants += 1
+        return self._constants[key]
 
     def _gather(self, where: list[tuple[int, int]], device: torch.device) -> Tensor:
         """Stored rows in request order: one ``index_select`` per chunk, then one reordering."""

@@ -23,6 +23,7 @@ from mapless.models.base import (
     context_vector,
     gcn_layer,
     normalized_adjacency_parameter,
+    shared_gcn_term,
     shared_row_gcn_layer,
 )
 
@@ -48,9 +49,8 @@ class ObjectGcnMixin:
     def _in_view_layers(self, in_view: Tensor) -> Tensor:
         """X3 ``[B, C, 5]``: the layers that see the observation only through the in-view vector."""
         # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
-        x = F.relu(
-            shared_row_gcn_layer(self.A, in_view, self.all_glove, self.W0), inplace=True
-        )  # [C, B, C + 300]
+        shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, C + 300]
         x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
         return F.relu(gcn_layer(self.A, x, self.W2), inplace=True).transpose(0, 1)
 
