@@ -13,6 +13,7 @@ from train_fixtures import fixture_library, tiny_config
 from mapless.cli import main as cli_main
 from mapless.config import ConfigError, load_config
 from mapless.train import checkpoint as ckpt
+from mapless.train.common import clip_gradients, new_model
 from mapless.train.config import TrainConfig
 from mapless.train.run import resume_config, train
 
@@ -39,9 +40,12 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
         "charts/episode_length",
         "losses/total",
         "losses/entropy",
+        "losses/grad_norm",
         "perf/frames_per_s",
     ):
         assert key in records[-1]
+    # savn is adaptive, so nothing clips its gradient; its norm is logged all the same.
+    assert all(r["losses/grad_norm"] > 0 for r in records)
     assert [n for n, _ in ckpt.snapshots(straight)] == [8, 16]
     assert (straight / ckpt.FINAL_MODEL_FILE).is_file()
     assert not list(straight.rglob("*.tmp"))
@@ -68,6 +72,20 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
     assert not model.training
     for key, value in model.state_dict().items():
         assert torch.equal(value, a["model"][key])
+
+
+@pytest.mark.parametrize(("model", "clipped"), [("a3c", True), ("savn", False)])
+def test_gradient_clipping_as_the_references(model: str, clipped: bool) -> None:
+    """Non-adaptive models are clipped at norm 100, adaptive ones not; the norm before is returned."""
+    config = tiny_config(model)
+    net = new_model(config)
+    for p in net.parameters():
+        p.grad = torch.ones_like(p)
+    count = sum(p.numel() for p in net.parameters())
+    assert count > 100**2  # an all-ones gradient then has a norm above the limit
+    assert clip_gradients(net, config) == pytest.approx(count**0.5, rel=1e-5)
+    after = torch.cat([p.grad.flatten() for p in net.parameters()]).norm()
+    assert float(after) == pytest.approx(config.optim.grad_clip if clipped else count**0.5, rel=1e-3)
 
 
 def test_checkpoint_files_are_plain_data(tmp_path: Path) -> None:

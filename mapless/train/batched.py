@@ -189,9 +189,9 @@ class BatchedTrainer:
         losses = accumulate_gradients(self.actor, trajectory, cfg.loss)
         fill_missing_gradients(self.model)
         dist.all_reduce_gradients(self.params, self.ctx)
-        clip_gradients(self.model, cfg)
+        grad_norm = clip_gradients(self.model, cfg)
         self.optimizer.step()
-        return {"trajectory": trajectory, "losses": losses}
+        return {"trajectory": trajectory, "losses": losses, "grad_norm": grad_norm}
 
     def run(self, resume: dict | None = None) -> dict[str, float]:
         """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
@@ -260,6 +260,7 @@ class BatchedTrainer:
             float(totals[1] / episodes),
             float(totals[2] / episodes),
             float(totals[3] / max(frames, 1)),
+            grad_norm=result["grad_norm"],  # of the all-reduced gradient: the same on every rank
             count=episodes,
         )
         monitor.advance(self.counters["episodes"], self.counters["frames"])

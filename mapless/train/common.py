@@ -71,12 +71,16 @@ def new_model(config: TrainConfig, device: torch.device | str = "cpu") -> NavMod
 
 def clip_gradients(model: NavModel, config: TrainConfig) -> float:
     """The references clip non-adaptive models at norm 100 and leave SAVN's meta-gradient alone.
-    Returns the norm before clipping (0 when clipping is off)."""
+    Returns the gradient's L2 norm before clipping, whether clipping is on or not (it is logged:
+    a policy that collapses often does so right after a large step)."""
     limit = config.optim.meta_grad_clip if model.adaptive else config.optim.grad_clip
-    if limit <= 0:
-        return 0.0
     params = [p for p in model.parameters() if p.grad is not None]
-    return float(torch.nn.utils.clip_grad_norm_(params, limit)) if params else 0.0
+    if not params:
+        return 0.0
+    norm = torch.nn.utils.get_total_norm([p.grad for p in params])
+    if limit > 0:
+        torch.nn.utils.clip_grads_with_norm_(params, limit, norm)
+    return float(norm)
 
 
 def trainable(model: NavModel) -> list[torch.Tensor]:

@@ -107,7 +107,7 @@ def _worker(
             trajectory = run_episode(actor, env, episode, noise, keys, device)
             losses = accumulate_gradients(actor, trajectory, config.loss)
             fill_missing_gradients(local)
-            clip_gradients(local, config)
+            grad_norm = clip_gradients(local, config)
             for lp, sp in zip(local_params, shared_params, strict=True):
                 sp.grad = lp.grad
             optimizer.step()
@@ -124,6 +124,7 @@ def _worker(
                         "policy": float(losses.policy.detach()[0]),
                         "value": float(losses.value.detach()[0]),
                         "entropy": float(losses.entropy.detach()[0]),
+                        "grad_norm": grad_norm,
                     },
                 )
             )
@@ -284,7 +285,11 @@ class AsyncTrainer:
         self.counters["updates"] += 1
         monitor.add_episodes(*(np.array([stats[k]]) for k in ("success", "spl", "length", "reward")))
         monitor.add_losses(
-            stats["total"], stats["policy"], stats["value"], stats["entropy"] / max(stats["length"], 1)
+            stats["total"],
+            stats["policy"],
+            stats["value"],
+            stats["entropy"] / max(stats["length"], 1),
+            grad_norm=stats["grad_norm"],
         )
         monitor.advance(self.counters["episodes"], self.counters["frames"])
         every = self.config.checkpoint_every

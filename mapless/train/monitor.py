@@ -10,6 +10,8 @@ Logged every ``log_every`` episodes, as means over the episodes finished since t
 * ``charts/episode_length``: actions per episode, ``Done`` included;
 * ``losses/total``, ``losses/policy``, ``losses/value``: per-episode A3C terms (sums over steps, as the
   reference), averaged over episodes; ``losses/entropy``: mean policy entropy per step;
+* ``losses/grad_norm``: L2 norm of the update's gradient before clipping (batched mode: of the mean
+  over episodes and ranks; async mode: of one episode's), averaged over updates weighted by episodes;
 * ``perf/frames_per_s``, ``perf/episodes_per_s``: throughput since the previous record (a frame is one
   environment step of one episode);
 * ``perf/frames``: frames so far.
@@ -99,13 +101,23 @@ class RunMonitor:
             self._window.setdefault(key, []).extend(np.asarray(values, dtype=np.float64).tolist())
         self._running.extend(np.asarray(success, dtype=bool).tolist())
 
-    def add_losses(self, total: float, policy: float, value: float, entropy: float, count: int = 1) -> None:
-        """Loss terms already averaged over ``count`` episodes (weighted accordingly in the record)."""
+    def add_losses(
+        self,
+        total: float,
+        policy: float,
+        value: float,
+        entropy: float,
+        grad_norm: float,
+        count: int = 1,
+    ) -> None:
+        """One update's loss terms and gradient norm, the losses already averaged over its ``count``
+        episodes (weighted accordingly in the record)."""
         for key, value_ in (
             ("losses/total", total),
             ("losses/policy", policy),
             ("losses/value", value),
             ("losses/entropy", entropy),
+            ("losses/grad_norm", grad_norm),
         ):
             self._window.setdefault(key, []).extend([float(value_)] * count)
 
