@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 import yaml
 
 from mapless.errors import MaplessError
+from mapless.files import write_text
 
 T = TypeVar("T")
 
@@ -154,4 +155,4 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: list[st
 
 
 def save_config(config: Any, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    write_text(path, yaml.safe_dump(to_dict(config), sort_keys=False))

@@ -46,6 +46,7 @@ from mapless.evaluate.report import (
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
 from mapless.evaluate.selection import PROTOCOLS, load_episodes, select_and_report
 from mapless.evaluate.stats import seed_estimates
+from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
 
 EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45")
@@ -193,6 +194,13 @@ def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
 
 
 # -- evaluation --------------------------------------------------------------------------------------
+def experiment_scenes(config: ExperimentConfig) -> tuple[LibrarySpec, str]:
+    """The scenes (simulator settings) and target set of an experiment: those of its focus model's
+    training config. The untrained baselines and the figures use them too."""
+    env = train_config(config, config.focus, seed=1).env
+    return LibrarySpec.for_env(env), env.target_set
+
+
 @dataclass
 class Evaluator:
     """Evaluation settings and episode sets of one experiment."""
@@ -204,20 +212,25 @@ class Evaluator:
         e = self.config.eval
         select_split, report_split, self.protocol_label = PROTOCOLS[e.protocol]
         self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
-        self.select_episodes = load_episodes(select_split, e.select_file, e.per_room, e.rooms)
+        self.scenes, target_set = experiment_scenes(self.config)
+        sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
+        self.select_episodes = load_episodes(select_split, e.select_file, **sets)
         self.report_episodes = (
-            self.select_episodes
-            if e.protocol == "paper"
-            else load_episodes(report_split, e.report_file, e.per_room, e.rooms)
+            self.select_episodes if e.protocol == "paper" else load_episodes(report_split, e.report_file, **sets)
         )
 
-    def library(self, train_cfg=None) -> LibrarySpec:
-        if train_cfg is None:
-            return LibrarySpec()
-        return LibrarySpec(sim=train_cfg.env.sim, cache_dir=train_cfg.env.cache_dir)
+    def library(self, train_cfg) -> LibrarySpec:
+        """A run's scenes; they must be the experiment's, which its episode sets were checked against."""
+        spec = LibrarySpec.for_env(train_cfg.env)
+        if spec.sim_fingerprint != self.scenes.sim_fingerprint:
+            raise MaplessError(
+                f"the {train_cfg.model.name} run's simulator settings differ from the experiment's "
+                f"({self.config.focus}'s), on which its episode sets were checked; give every model the same env.sim"
+            )
+        return spec
 
     def untrained(self, model: str) -> tuple[list[EpisodeResult], dict]:
-        run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.library())
+        run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.scenes)
         self.log(f"  {model}: {len(run.results)} episodes, {run.steps_per_second:.0f} steps/s")
         return run.results, {"steps_per_second": run.steps_per_second}
 
@@ -420,13 +433,11 @@ def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None],
 def run_figures45(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
     from mapless.evaluate.figures import pick_showcase, trajectory_figure, trajectory_gif
     from mapless.knowledge import parents_of
-    from mapless.sim.library import SceneLibrary
-
     table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
     first_seed = {m: per_seed[0] for m, per_seed in table["results"].items()}
     focus = config.focus if config.focus in first_seed else next(iter(first_seed))
     showcase, failure = pick_showcase(first_seed, focus)
-    library = SceneLibrary.builtin()
+    library = experiment_scenes(config)[0].build()
     lines = ["# Figures 4 and 5: trajectories", "", f"Command: `{command}`.", ""]
     figures = {}
     for name, index, caption in (
@@ -464,7 +475,7 @@ PIPELINES: dict[str, Callable[..., dict]] = {
 def _write(out: Path, name: str, payload: dict, lines: list[str]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     write_json(payload, out / f"{name}.json")
-    (out / f"{name}.md").write_text("\n".join(lines))
+    write_text(out / f"{name}.md", "\n".join(lines))
 
 
 def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log: Callable[[str], None] = print,

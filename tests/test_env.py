@@ -202,3 +202,17 @@ def test_parent_reward_can_be_switched_off_per_room_type(library):
     batched = BatchedNavEnv(library, [SCENE], 1, rewards=rewards)
     batched.reset([0], [episode])
     assert not batched.parent_weights.any() and data.room_type == "kitchen"
+
+
+def test_episodes_naming_their_instances_aim_at_those_only(library):
+    data = library[SCENE]
+    toasters = data.instances_of("Toaster")
+    assert list(data.goal_instances("Toaster")) == list(toasters)
+    named = (data.instance_ids[toasters[0]],)
+    assert list(data.goal_instances("Toaster", named)) == [toasters[0]]
+    episode, _ = far_episode(library)
+    ghost = Episode(episode.scene, episode.target, episode.start, target_ids=(*named, "Toaster|9|9|9"))
+    with pytest.raises(MaplessError, match=r"no object Toaster\|9\|9\|9"):
+        NavEnv(library, [SCENE]).reset(options={"episode": ghost})
+    with pytest.raises(MaplessError, match=r"no object Toaster\|9\|9\|9"):
+        BatchedNavEnv(library, [SCENE], 1).reset([0], [ghost])

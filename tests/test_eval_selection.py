@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import pytest
 
+from mapless.cli import main
 from mapless.errors import MaplessError
+from mapless.evaluate.runner import LibrarySpec
 from mapless.evaluate.selection import PROTOCOLS, best_index, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
+from mapless.sim.config import SimConfig
 
 
 def test_best_by_success_then_spl_then_earliest():
@@ -39,3 +42,17 @@ def test_builtin_sets_prefix_per_room():
 def test_missing_episode_file_says_how_to_make_it(tmp_path):
     with pytest.raises(MaplessError, match="mapless episodes make"):
         load_episodes("val", tmp_path / "none.json.gz")
+
+
+def test_episode_sets_are_refused_under_other_simulator_settings():
+    assert len(load_episodes("val", per_room=2, library=LibrarySpec())) == 8
+    other = LibrarySpec(sim=SimConfig(visibility_distance=1.5))
+    with pytest.raises(MaplessError, match="regenerate it with `mapless episodes make`"):
+        load_episodes("val", per_room=2, library=other)
+    # Offline roots and test factories carry no simulator fingerprint: nothing to compare.
+    assert LibrarySpec(offline_dir="somewhere").sim_fingerprint is None
+
+
+def test_select_refuses_to_report_on_the_selection_split(tmp_path, capsys):
+    assert main(["eval", str(tmp_path), "--select", "--split", "val"]) != 0
+    assert "reports on --split test" in capsys.readouterr().err

@@ -62,23 +62,28 @@ def _eval(args: argparse.Namespace) -> int:
     from mapless.evaluate.metrics import aggregate
     from mapless.evaluate.report import details_table, model_record, model_table, room_table, write_json
     from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-    from mapless.evaluate.selection import PROTOCOLS, load_episodes, select_and_report
+    from mapless.evaluate.selection import load_episodes, select_and_report
+    from mapless.files import write_text
 
     path = Path(args.model)
     settings = EvalSettings(
         batch_size=args.batch_size, workers=args.workers, seed=args.seed, greedy=args.greedy, bf16=args.bf16
     )
-    library = LibrarySpec()
+    if args.select and args.split == "val":
+        raise MaplessError(
+            "--select chooses a checkpoint on val, so it reports on --split test (or paper); "
+            "the val scores of every checkpoint are in the selection table it prints"
+        )
+    library = LibrarySpec(offline_dir=str(args.offline_dir) if args.offline_dir else None)
+    target_set = "mjolnir22"
     meta: dict = {"split": args.split}
     if path.exists():
         from mapless.train.checkpoint import config_of, load_file, resolve_model_file
 
         model_file = resolve_model_file(path)
         cfg = config_of(load_file(model_file))
-        offline = args.offline_dir or cfg.env.offline_dir
-        library = LibrarySpec(
-            sim=cfg.env.sim, cache_dir=cfg.env.cache_dir, offline_dir=str(offline) if offline else None
-        )
+        library = LibrarySpec.for_env(cfg.env, offline_dir=args.offline_dir)
+        target_set = cfg.env.target_set
         settings = EvalSettings(**{**settings.__dict__, "category_set": cfg.model.category_set})
         label = cfg.model.name
         spec = AgentSpec(checkpoint=str(model_file))
@@ -89,24 +94,24 @@ def _eval(args: argparse.Namespace) -> int:
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
-    if args.offline_dir and library.offline_dir is None:
-        library = LibrarySpec(offline_dir=str(args.offline_dir))
-    episodes = load_episodes(args.split, args.episodes, args.per_room)
+    sets = {"per_room": args.per_room, "library": library, "target_set": target_set}
+    episodes = load_episodes(args.split, args.episodes, **sets)
+    report_name = args.episodes.name if args.episodes else None
     if args.select:
         if not path.is_dir():
             raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
         protocol = "paper" if args.split == "paper" else "standard"
-        select_eps = episodes if protocol == "paper" else load_episodes("val", None, args.per_room)
-        sel = select_and_report(path, select_eps, episodes, settings, library, protocol, progress=print)
+        select_eps = episodes if protocol == "paper" else load_episodes("val", **sets)
+        sel = select_and_report(
+            path, select_eps, episodes, settings, library, protocol, progress=print, report_name=report_name
+        )
         results, seconds, steps = sel.report.results, sel.report.seconds, sel.report.steps
         meta["selection"] = sel.summary()
         meta["protocol_label"] = sel.label
     else:
         run = evaluate(spec, episodes, settings, library)
         results, seconds, steps = run.results, run.seconds, run.steps
-        meta["protocol_label"] = (
-            PROTOCOLS["paper"][2] if args.split == "paper" else f"single model on {args.split}"
-        )
+        meta["protocol_label"] = f"single model on {report_name or args.split}, no checkpoint selection"
         meta["model_file"] = spec.checkpoint
     meta["steps_per_second"] = steps / seconds if seconds else None
     record = model_record(label, [results], meta)
@@ -125,7 +130,7 @@ def _eval(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    (out / f"{args.split}.md").write_text(text)
+    write_text(out / f"{args.split}.md", text)
     print(text)
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "

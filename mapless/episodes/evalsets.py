@@ -12,6 +12,7 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import zlib
 from importlib import resources
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
+from mapless.files import write_bytes
 from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, scene_names
 from mapless.scenes.categories import targets
 from mapless.sim.library import SceneLibrary
@@ -93,8 +95,7 @@ def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_f
 def save(
     path: Path, episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str
 ) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(dumps(episodes, split, target_set, seed, sim_fingerprint))
+    write_bytes(path, dumps(episodes, split, target_set, seed, sim_fingerprint))
 
 
 def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[list[Episode], dict]:
@@ -102,7 +103,7 @@ def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[lis
     path = Path(path)
     try:
         payload = json.loads(gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_text())
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zlib.error) as error:  # EOFError, zlib.error: a torn .gz
         raise MaplessError(f"cannot read episode file {path}: {error}") from error
     if payload.get("format") != FORMAT:
         raise MaplessError(f"{path}: not a {FORMAT} file (format {payload.get('format')!r})")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from mapless.evaluate.metrics import EpisodeResult, summarize
 from mapless.evaluate.stats import Estimate, seed_estimates
+from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
 
 #: column key -> (header, shown in percent)
@@ -135,8 +136,7 @@ def details_table(records: Sequence[dict]) -> str:
 
 
 def write_json(payload: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(payload, indent=1, allow_nan=True))
+    write_text(path, json.dumps(payload, indent=1, allow_nan=True))
 
 
 def read_json(path: Path) -> dict:

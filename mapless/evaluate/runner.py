@@ -32,6 +32,7 @@ import numpy as np
 from mapless.episodes.episode import Episode
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.scenes.catalogue import room_type_of
+from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
@@ -179,10 +180,7 @@ class OracleAgent:
             episode = env.episodes[slot]
             data = env.library[episode.scene]
             if episode.target_ids:
-                index = {iid: i for i, iid in enumerate(data.instance_ids)}
-                goal = data.goal_mask_for_instances(
-                    np.array([index[i] for i in episode.target_ids if i in index])
-                )
+                goal = data.goal_mask_for_instances(data.goal_instances(episode.target, episode.target_ids))
                 self.distances[slot] = data.distances_to(goal)
             else:
                 self.distances[slot] = data.target_distances(episode.target)
@@ -264,6 +262,20 @@ class LibrarySpec:
     cache_dir: str | None = None
     factory: str | None = None
     offline_dir: str | None = None
+
+    @classmethod
+    def for_env(cls, env: Any, offline_dir: str | Path | None = None) -> LibrarySpec:
+        """The scenes a run was trained on, from its ``TrainConfig.env`` (``offline_dir`` replaces the
+        run's offline root, if any)."""
+        offline = offline_dir or env.offline_dir
+        return cls(sim=env.sim, cache_dir=env.cache_dir, offline_dir=str(offline) if offline else None)
+
+    @property
+    def sim_fingerprint(self) -> str | None:
+        """The built-in simulator's fingerprint (what episode files record), None for other sources."""
+        if self.factory is not None or self.offline_dir is not None:
+            return None
+        return fingerprint(self.sim)
 
     def build(self) -> SceneLibrary:
         if self.factory is not None:

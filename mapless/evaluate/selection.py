@@ -39,18 +39,23 @@ def load_episodes(
     episodes_file: str | Path | None = None,
     per_room: int | None = None,
     rooms: Sequence[str] = ROOM_TYPES,
-    sim_fingerprint: str | None = None,
+    library: LibrarySpec | None = None,
     target_set: str = "mjolnir22",
 ) -> list[Episode]:
-    """The fixed episodes of ``split`` (built-in set unless ``episodes_file``), keeping the first
-    ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small budgets evaluate a
-    subset of the very episodes the full budget uses."""
+    """The fixed episodes of ``split`` (built-in set of ``target_set`` unless ``episodes_file``),
+    keeping the first ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small
+    budgets evaluate a subset of the very episodes the full budget uses.
+
+    With a built-in simulator ``library``, a file made under other simulator settings is refused: its
+    shortest paths (SPL, the L>=5 split) and its "target not yet visible" starts would be wrong there.
+    """
     path = Path(episodes_file) if episodes_file else evalsets.builtin_path(split, target_set)
     if not path.exists():
         raise MaplessError(
-            f"no episode file {path}; make the fixed sets with `mapless episodes make` or pass --episodes FILE"
+            f"no episode file {path}; make the fixed sets with "
+            f"`mapless episodes make --target-set {target_set}` or pass --episodes FILE"
         )
-    episodes, _ = evalsets.load(path, sim_fingerprint)
+    episodes, _ = evalsets.load(path, library.sim_fingerprint if library else None)
     kept: list[Episode] = []
     count = dict.fromkeys(rooms, 0)
     for episode in episodes:
@@ -119,7 +124,10 @@ def _cached_evaluate(
     """Evaluate, reusing ``cache`` when it holds the same checkpoint, episodes and settings."""
     key = {"spec": asdict(spec), "episodes": episodes_digest(episodes), "settings": asdict(settings)}
     if cache is not None and cache.is_file():
-        stored = read_json(cache)
+        try:
+            stored = read_json(cache)
+        except (OSError, ValueError):  # unreadable (written by an older, non-atomic version): a miss
+            stored = {}
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
             return EvalRun(results, stored["seconds"], stored["steps"])
@@ -141,13 +149,20 @@ def select_and_report(
     library: LibrarySpec,
     protocol: str = "standard",
     progress: Callable[[str], None] | None = None,
+    report_name: str | None = None,
 ) -> Selection:
     """Evaluate every candidate of ``run_dir`` on ``select_episodes``, pick the best, and evaluate it
     once on ``report_episodes`` (``paper`` protocol: reuse the selection run on the same episodes).
-    Per-checkpoint results are cached under ``run_dir/eval/``."""
+    ``report_name`` names report episodes that are not the protocol's built-in set (an episode file)
+    in the label and the cache. Per-checkpoint results are cached under ``run_dir/eval/``."""
     if protocol not in PROTOCOLS:
         raise MaplessError(f"unknown protocol {protocol!r}; choose one of {list(PROTOCOLS)}")
     select_split, report_split, label = PROTOCOLS[protocol]
+    if report_name and protocol == "paper":
+        select_split = report_split = report_name
+        label = f"PAPER PROTOCOL: selected and reported on the same episodes of {report_name} (optimistic)"
+    elif report_name:
+        report_split, label = report_name, f"selected on val (x21-x25), reported once on {report_name}"
     run_dir = Path(run_dir)
     scores, runs = [], []
     for episodes_done, path in candidates(run_dir):

@@ -30,6 +30,7 @@ import numpy as np
 
 from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
+from mapless.files import write_bytes
 from mapless.offline.format import (
     DEFAULT_AGENT_Y,
     OfflineFormatError,
@@ -536,5 +537,5 @@ def write_episode_file(
     buffer = io.BytesIO()
     # Protocol 2: readable by the Python 3.6 / PyTorch 0.4 environment of the originals.
     _EpisodePickler(buffer, protocol=2).dump(entries)
-    Path(path).write_bytes(buffer.getvalue())
+    write_bytes(path, buffer.getvalue())
     return len(entries)

@@ -30,6 +30,7 @@ import numpy as np
 
 from mapless import __version__
 from mapless.errors import MaplessError
+from mapless.files import replacing, write_text
 from mapless.offline.format import (
     BOXES_FILE,
     DEFAULT_AGENT_Y,
@@ -170,10 +171,7 @@ def export_scene(
 
 
 def _write_json(path: Path, data: object) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w") as f:
-        json.dump(data, f, separators=(",", ":"))
-    tmp.replace(path)
+    write_text(path, json.dumps(data, separators=(",", ":")))
 
 
 def _write_features(path: Path, sd: SceneData, keys: list[str], format: str, compression: str | None) -> None:
@@ -196,9 +194,7 @@ def _write_features(path: Path, sd: SceneData, keys: list[str], format: str, com
         else {}
     )
     padded = np.zeros((RESNET_CHANNELS, FEATURE_SIDE, FEATURE_SIDE), dtype=np.float32)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with h5py.File(tmp, "w") as f:
+    with replacing(path) as tmp, h5py.File(tmp, "w") as f:
         for p, key in enumerate(keys):
             padded[:n_channels] = sd.features[p].astype(np.float32) * np.float32(sd.feature_scale)
             f.create_dataset(key, data=padded.reshape(shape), **options)
-    tmp.replace(path)

@@ -12,13 +12,13 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 import zipfile
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from mapless.files import replacing
 from mapless.scenes.catalogue import canonical_scene
 from mapless.scenes.layout import SCENE_FILE, load_scene
 from mapless.sim.build import build_scene_data
@@ -74,9 +74,8 @@ def save(data: SceneData, path: Path, config: SimConfig) -> None:
         "feature_scale": data.feature_scale,
         "meta": data.meta,
     }
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        np.savez_compressed(tmp, header=np.array(json.dumps(header)), **arrays)
-    os.replace(tmp.name, path)
+    with replacing(path) as tmp, tmp.open("wb") as handle:  # a handle: a path would gain ".npz"
+        np.savez_compressed(handle, header=np.array(json.dumps(header)), **arrays)
 
 
 class StaleCacheError(Exception):

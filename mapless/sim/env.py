@@ -113,11 +113,7 @@ class NavEnv(gym.Env):
     def _goal_and_distances(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
         key = (episode.scene, episode.target, episode.target_ids)
         if key not in self._goal_cache:
-            if episode.target_ids:
-                index = {iid: i for i, iid in enumerate(self.data.instance_ids)}
-                instances = np.array([index[i] for i in episode.target_ids if i in index], dtype=np.int64)
-            else:
-                instances = self.data.instances_of(episode.target)
+            instances = self.data.goal_instances(episode.target, episode.target_ids)
             goal = self.data.goal_mask_for_instances(instances)
             self._goal_cache[key] = (goal, self.data.distances_to(goal))
         return self._goal_cache[key]

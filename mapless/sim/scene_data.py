@@ -8,9 +8,12 @@ export). An episode step is array indexing into it.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from mapless.errors import MaplessError
 
 ACTIONS: tuple[str, ...] = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
 MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
@@ -93,6 +96,22 @@ class SceneData:
 
     def instances_of(self, object_type: str) -> np.ndarray:
         return np.flatnonzero(np.asarray(self.instance_types) == object_type)
+
+    def goal_instances(self, object_type: str, instance_ids: Sequence[str] = ()) -> np.ndarray:
+        """Indices of an episode's goal instances: those of ``instance_ids`` (an episode that names
+        its instances, as SAVN's do), else every instance of ``object_type``. An id this scene lacks
+        is an error: silently dropped, it would make the episode unwinnable (episodes made for
+        another version of the scene's data, e.g. v5 ids on a v1 offline root)."""
+        if not instance_ids:
+            return self.instances_of(object_type)
+        index = {iid: i for i, iid in enumerate(self.instance_ids)}
+        missing = [i for i in instance_ids if i not in index]
+        if missing:
+            raise MaplessError(
+                f"{self.scene} has no object {', '.join(missing)} (an episode's target instances); "
+                "were its episodes made for another version of this scene's data?"
+            )
+        return np.array([index[i] for i in instance_ids], dtype=np.int64)
 
     @functools.cached_property
     def visible_matrix_csr(self) -> tuple[np.ndarray, np.ndarray]:

@@ -86,11 +86,7 @@ class BatchedNavEnv:
         key = (episode.scene, episode.target, episode.target_ids)
         if key not in self._goal_ids:
             data = self.library[episode.scene]
-            if episode.target_ids:
-                index = {iid: i for i, iid in enumerate(data.instance_ids)}
-                instances = np.array([index[i] for i in episode.target_ids if i in index], dtype=np.int64)
-            else:
-                instances = data.instances_of(episode.target)
+            instances = data.goal_instances(episode.target, episode.target_ids)
             goal_poses = (
                 np.flatnonzero(data.goal_mask_for_instances(instances)) + self.scene_offset[episode.scene]
             )

@@ -16,9 +16,7 @@ tensors, numbers, strings, lists and dicts and are read with ``torch.load(weight
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +24,7 @@ import torch
 
 from mapless.config import from_dict, to_dict
 from mapless.errors import MaplessError
+from mapless.files import replacing
 from mapless.models import NavModel, build_model
 from mapless.train.config import TrainConfig
 
@@ -42,19 +41,9 @@ class CheckpointError(MaplessError):
 
 
 def atomic_save(payload: Any, path: str | Path) -> None:
-    """``torch.save`` to a temporary file next to ``path``, fsync, then rename over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(payload, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """``torch.save``, atomically (:func:`mapless.files.replacing`)."""
+    with replacing(path) as tmp:
+        torch.save(payload, tmp)
 
 
 def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
