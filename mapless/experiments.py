@@ -216,7 +216,9 @@ class Evaluator:
         sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
         self.select_episodes = load_episodes(select_split, e.select_file, **sets)
         self.report_episodes = (
-            self.select_episodes if e.protocol == "paper" else load_episodes(report_split, e.report_file, **sets)
+            self.select_episodes
+            if e.protocol == "paper"
+            else load_episodes(report_split, e.report_file, **sets)
         )
 
     def library(self, train_cfg) -> LibrarySpec:
@@ -433,6 +435,7 @@ def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None],
 def run_figures45(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
     from mapless.evaluate.figures import pick_showcase, trajectory_figure, trajectory_gif
     from mapless.knowledge import parents_of
+
     table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
     first_seed = {m: per_seed[0] for m, per_seed in table["results"].items()}
     focus = config.focus if config.focus in first_seed else next(iter(first_seed))

@@ -60,6 +60,17 @@ def test_killed_worker_is_reported_and_the_run_stops(tmp_path: Path) -> None:
     assert all(not p.is_alive() for p in others), "surviving workers were not stopped"
 
 
+def broken_library():
+    """A library factory that fails inside the spawned workers (module-level: picklable)."""
+    raise RuntimeError("the scene files are unreadable")
+
+
+def test_a_failing_worker_reports_its_traceback(tmp_path: Path) -> None:
+    config = tiny_config("a3c", "mode=async", "workers=2", "episodes=1000000000")
+    with pytest.raises(WorkerError, match="RuntimeError: the scene files are unreadable"):
+        AsyncTrainer(config, tmp_path, broken_library).run()
+
+
 def test_async_refuses_cuda() -> None:
     with pytest.raises(Exception, match="async"):
         AsyncTrainer(tiny_config("a3c", "mode=async", "device=cuda"), None)

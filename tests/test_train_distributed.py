@@ -63,3 +63,26 @@ def test_two_ranks_stay_identical(tmp_path: Path) -> None:
     assert len(state["rng"]) == WORLD and state["counters"]["world_size"] == WORLD
     for key, value in state["model"].items():
         assert torch.equal(value, r0["model"][key])
+
+
+def _reduce_rank(rank: int, port: int, out: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(WORLD))
+    ctx = dist.init_distributed("cpu")
+    try:
+        params = [torch.zeros(3, requires_grad=True) for _ in range(3)]
+        params[0].grad = torch.full((3,), float(rank + 1))  # every rank: 1 and 2
+        if rank == 1:
+            params[1].grad = torch.full((3,), 4.0)  # rank 1 only; no rank has one for params[2]
+        dist.all_reduce_gradients(params, ctx)
+        torch.save([p.grad for p in params], Path(out) / f"grads{rank}.pt")
+    finally:
+        dist.shutdown(ctx)
+
+
+def test_gradients_missing_on_every_rank_stay_missing(tmp_path: Path) -> None:
+    mp.spawn(_reduce_rank, args=(_free_port(), str(tmp_path)), nprocs=WORLD, join=True)
+    for rank in range(WORLD):
+        mean, partial, missing = torch.load(tmp_path / f"grads{rank}.pt", weights_only=True)
+        assert torch.equal(mean, torch.full((3,), 1.5))
+        assert torch.equal(partial, torch.full((3,), 2.0))  # a missing gradient counts as zeros
+        assert missing is None  # so that the optimizer skips it, as in one process

@@ -54,9 +54,16 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
     halted = tmp_path / "halted"
     train(config.replace(episodes=8), halted, library_factory=fixture_library)
     assert _state(halted)["counters"]["episodes"] == 8
+    # As if the run had logged 12 episodes and been killed before its next checkpoint.
+    with (halted / "metrics.jsonl").open("a") as f:
+        f.write(json.dumps({"episodes": 12, "frames": 0, "time": 0.0, "lost": True}) + "\n")
     resumed_config, state = resume_config(halted, ["episodes=16"])
     assert resumed_config == config
     train(resumed_config, halted, resume=state, library_factory=fixture_library)
+    resumed = [json.loads(line) for line in (halted / "metrics.jsonl").read_text().splitlines()]
+    assert [r["episodes"] for r in resumed] == [4, 8, 12, 16]  # the lost record replaced, none twice
+    assert not any("lost" in r for r in resumed)
+    assert resumed[-1]["charts/success"] == records[-1]["charts/success"]
 
     a, b = _state(straight), _state(halted)
     assert a["counters"] == b["counters"]
@@ -86,6 +93,16 @@ def test_gradient_clipping_as_the_references(model: str, clipped: bool) -> None:
     assert clip_gradients(net, config) == pytest.approx(count**0.5, rel=1e-5)
     after = torch.cat([p.grad.flatten() for p in net.parameters()]).norm()
     assert float(after) == pytest.approx(config.optim.grad_clip if clipped else count**0.5, rel=1e-3)
+
+
+def test_the_last_partial_log_interval_is_written(tmp_path: Path) -> None:
+    train(
+        tiny_config("a3c", "batch_size=2", "episodes=6", "log_every=4"),
+        tmp_path,
+        library_factory=fixture_library,
+    )
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["episodes"] for r in records] == [4, 6]
 
 
 def test_checkpoint_files_are_plain_data(tmp_path: Path) -> None:

@@ -85,14 +85,7 @@ class BatchedTrainer:
         self.ctx = ctx or dist.DistContext()
         self.run_dir = Path(run_dir) if run_dir is not None and self.ctx.is_main else None
         self.library_factory = library_factory or BuiltinLibrary(config)
-        if config.device.startswith("cuda"):
-            self.device = (
-                torch.device("cuda", self.ctx.local_rank)
-                if config.device == "cuda"
-                else torch.device(config.device)
-            )
-        else:
-            self.device = torch.device("cpu")
+        self.device = dist.rank_device(config.device, self.ctx.local_rank)
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self._clock, self._out_of_time = time.perf_counter(), False
 

@@ -59,34 +59,16 @@ def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dic
     return payload
 
 
-def model_payload(model: NavModel, config: TrainConfig, counters: dict[str, int]) -> dict:
-    """What evaluation needs: weights, the config that builds the model, and how far training got."""
+def model_payload(weights: dict[str, torch.Tensor], config: TrainConfig, counters: dict[str, int]) -> dict:
+    """What evaluation needs: weights (a CPU state dict), the config that builds the model, and how
+    far training got."""
     return {
         "format": FORMAT_VERSION,
         "kind": "model",
         "config": to_dict(config),
-        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "model": weights,
         "counters": dict(counters),
     }
-
-
-def save_snapshot(run_dir: Path, model: NavModel, config: TrainConfig, counters: dict[str, int]) -> Path:
-    path = Path(run_dir) / SNAPSHOT_DIR / f"model_{counters['episodes']:010d}.pt"
-    atomic_save(model_payload(model, config, counters), path)
-    return path
-
-
-def save_final(run_dir: Path, model: NavModel, config: TrainConfig, counters: dict[str, int]) -> Path:
-    path = Path(run_dir) / FINAL_MODEL_FILE
-    atomic_save(model_payload(model, config, counters), path)
-    return path
-
-
-def save_checkpoint(run_dir: Path, state: dict) -> Path:
-    """``state``: model, optimizer, rng, counters, config (see the trainers); adds the format tag."""
-    path = Path(run_dir) / CHECKPOINT_FILE
-    atomic_save({"format": FORMAT_VERSION, "kind": "checkpoint", **state}, path)
-    return path
 
 
 def save_run_state(
@@ -99,22 +81,38 @@ def save_run_state(
     world_size: int,
     final: bool,
 ) -> None:
-    """Everything a trainer writes at a checkpoint: the resumable state, a model snapshot and, at
-    the end of the budget, the final model."""
-    save_checkpoint(
-        run_dir,
-        {
-            # Copies, so a Hogwild worker updating shared weights cannot tear the saved tensors.
-            "model": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-            "optimizer": optimizer.state_dict(),
-            "rng": rngs,
-            "counters": {**counters, "world_size": world_size},
-            "config": to_dict(config),
-        },
-    )
-    save_snapshot(run_dir, model, config, counters)
+    """Everything a trainer writes at a checkpoint: the resumable state (:data:`CHECKPOINT_FILE`), a
+    model snapshot and, at the end of the budget, the final model.
+
+    Weights and optimizer moments are copied once, up front, and every file is written from the
+    copies: Hogwild workers keep updating the shared tensors while the files are written, and the
+    three files must hold one and the same state."""
+    weights = _copy({k: v.detach() for k, v in model.state_dict().items()})
+    state = {
+        "format": FORMAT_VERSION,
+        "kind": "checkpoint",
+        "model": weights,
+        "optimizer": _copy(optimizer.state_dict()),
+        "rng": rngs,
+        "counters": {**counters, "world_size": world_size},
+        "config": to_dict(config),
+    }
+    atomic_save(state, Path(run_dir) / CHECKPOINT_FILE)
+    model_file = model_payload(weights, config, counters)
+    atomic_save(model_file, Path(run_dir) / SNAPSHOT_DIR / f"model_{counters['episodes']:010d}.pt")
     if final:
-        save_final(run_dir, model, config, counters)
+        atomic_save(model_file, Path(run_dir) / FINAL_MODEL_FILE)
+
+
+def _copy(tree: Any) -> Any:
+    """``tree`` with every tensor replaced by a CPU copy (dicts and lists rebuilt, the rest kept)."""
+    if isinstance(tree, torch.Tensor):
+        return tree.detach().to("cpu", copy=True)
+    if isinstance(tree, dict):
+        return {k: _copy(v) for k, v in tree.items()}
+    if isinstance(tree, list | tuple):
+        return type(tree)(_copy(v) for v in tree)
+    return tree
 
 
 def config_of(payload: dict) -> TrainConfig:

@@ -198,7 +198,23 @@ class AsyncTrainer:
                     if code < 0
                     else f"exited with code {code}"
                 )
-                raise WorkerError(f"worker {rank} (pid {process.pid}) {how}; the run was stopped")
+                message = f"worker {rank} (pid {process.pid}) {how}; the run was stopped"
+                report = self._error_report(rank)
+                raise WorkerError(f"{message}:\n{report}" if report else message)
+
+    def _error_report(self, rank: int) -> str | None:
+        """The traceback a failed worker sent before exiting, if it is in the queue (the episodes
+        queued with it are dropped: the run stops). The other workers keep sending, so the search
+        stops at a deadline rather than at an empty queue."""
+        deadline = time.monotonic() + 5 * POLL_SECONDS  # a worker's last message precedes its exit
+        try:
+            while time.monotonic() < deadline:
+                kind, sender, payload = self.results.get(timeout=POLL_SECONDS)
+                if kind == "error" and sender == rank:
+                    return payload
+        except (queue_module.Empty, OSError, EOFError):
+            pass
+        return None
 
     def _stop_workers(self) -> None:
         """Ask the workers to stop, drain their queue so none blocks on a full pipe, then join;

@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from mapless.files import write_text
+
 RUNNING_WINDOW = 1000
 METRICS_FILE = "metrics.jsonl"
 
@@ -75,8 +77,16 @@ class RunMonitor:
             return
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes or None)
-        self._jsonl = open(Path(run_dir) / METRICS_FILE, "a")  # noqa: SIM115 - kept open for the run
+        # A resumed run continues from a checkpoint at ``episodes``, which was written after that
+        # count's record: records beyond it (written before the run was killed) are dropped from
+        # both logs, and the resumed run writes them again.
+        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1 if episodes else None)
+        metrics = Path(run_dir) / METRICS_FILE
+        if episodes and metrics.is_file():
+            kept = [line for line in metrics.read_text().splitlines(keepends=True)
+                    if json.loads(line)["episodes"] <= episodes]  # fmt: skip
+            write_text(metrics, "".join(kept))
+        self._jsonl = open(metrics, "a")  # noqa: SIM115 - kept open for the run
         self._by_frames = budget_episodes == 0
         total = budget_frames if self._by_frames else budget_episodes
         self.bar = tqdm(
@@ -164,6 +174,10 @@ class RunMonitor:
         return record
 
     def close(self) -> None:
+        """Write the episodes since the last record (a run stopped on time or by Ctrl-C, or a budget
+        that is not a multiple of ``log_every``), then close the logs."""
+        if any(self._window.values()):
+            self._write()
         if self.writer is not None:
             self.writer.flush()
             self.writer.close()
