@@ -39,7 +39,7 @@ class TrainingSampler:
             raise ValueError("TrainingSampler needs at least one scene")
         rng = np.random.default_rng(seed)
         rng.shuffle(self.room_cycle)
-        self._next_room = 0
+        self.position = 0  # episodes sampled so far: where the room cycle stands (checkpointed)
         self._candidates: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def _target_instances(self, scene: str) -> tuple[np.ndarray, np.ndarray]:
@@ -55,8 +55,8 @@ class TrainingSampler:
         return self._candidates[scene]
 
     def sample(self, rng: np.random.Generator) -> Episode:
-        room = self.room_cycle[self._next_room % len(self.room_cycle)]
-        self._next_room += 1
+        room = self.room_cycle[self.position % len(self.room_cycle)]
+        self.position += 1
         scenes = self.scenes_by_room[room]
         for _ in range(100):
             scene = scenes[rng.integers(len(scenes))]

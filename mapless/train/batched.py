@@ -122,7 +122,7 @@ class BatchedTrainer:
             "torch": torch.get_rng_state(),
             "numpy": self.rng.bit_generator.state,
             # The sampler's position in its room-type cycle (its only mutable state).
-            "sampler_next_room": int(self.sampler._next_room),
+            "sampler_next_room": self.sampler.position,
         }
         if self.device.type == "cuda":
             state["cuda"] = torch.cuda.get_rng_state(self.device).cpu()
@@ -137,14 +137,14 @@ class BatchedTrainer:
             rng = rngs[self.ctx.rank]
             torch.set_rng_state(rng["torch"])
             self.rng.bit_generator.state = rng["numpy"]
-            self.sampler._next_room = int(rng["sampler_next_room"])
+            self.sampler.position = int(rng["sampler_next_room"])
             if "cuda" in rng and self.device.type == "cuda":
                 torch.cuda.set_rng_state(rng["cuda"], self.device)
         else:
             # More ranks than when the checkpoint was written: fresh, distinct streams for the new ones.
-            stream = 30_000 + self.ctx.rank + 97 * self.counters["episodes"]
-            torch.manual_seed(seed_for(self.config, stream))
-            self.rng = np.random.default_rng(seed_for(self.config, stream + 1))
+            streams = (self.ctx.rank, self.counters["episodes"])
+            torch.manual_seed(seed_for(self.config, 30_000, *streams))
+            self.rng = np.random.default_rng(seed_for(self.config, 30_001, *streams))
 
     # -- checkpoints -----------------------------------------------------------------------------
     def _checkpoint(self, final: bool = False) -> None:

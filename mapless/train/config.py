@@ -142,7 +142,8 @@ class TrainConfig:
         but one of them must be set).
     max_seconds: also stop after this much wall-clock training time (0 = no limit; benchmarks and
         the learning check use it; a resumed run gets the full amount again).
-    seed: seeds the episode sampler, the action noise and torch (rank r of torchrun adds r).
+    seed: seeds the episode sampler, the action noise and torch; every torchrun rank and async worker
+        draws its own streams from it (``seed_for``: a ``SeedSequence`` of the seed and the rank).
     device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
     threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
     precision: ``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast)
@@ -189,6 +190,7 @@ class TrainConfig:
         _require(
             self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
         )
+        _require(self.mode in ("batched", "async"), "mode", f"must be batched or async, got {self.mode!r}")
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(

@@ -9,7 +9,8 @@ Logged every ``log_every`` episodes, as means over the episodes finished since t
   actions with the ``Done`` counted (SAVN's convention);
 * ``charts/episode_length``: actions per episode, ``Done`` included;
 * ``losses/total``, ``losses/policy``, ``losses/value``: per-episode A3C terms (sums over steps, as the
-  reference), averaged over episodes; ``losses/entropy``: mean policy entropy per step;
+  reference), averaged over episodes; ``losses/entropy``: mean policy entropy per step (batched mode:
+  over the interval's steps; async mode: the mean of its episodes' per-step means);
 * ``losses/grad_norm``: L2 norm of the update's gradient before clipping (batched mode: of the mean
   over episodes and ranks; async mode: of one episode's), averaged over updates weighted by episodes;
 * ``perf/frames_per_s``, ``perf/episodes_per_s``: throughput since the previous record (a frame is one
