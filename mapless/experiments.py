@@ -213,6 +213,7 @@ class Evaluator:
         select_split, report_split, self.protocol_label = PROTOCOLS[e.protocol]
         self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
         self.scenes, target_set = experiment_scenes(self.config)
+        self._untrained: dict[str, tuple[list[EpisodeResult], dict]] = {}
         sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
         self.select_episodes = load_episodes(select_split, e.select_file, **sets)
         self.report_episodes = (
@@ -232,9 +233,13 @@ class Evaluator:
         return spec
 
     def untrained(self, model: str) -> tuple[list[EpisodeResult], dict]:
-        run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.scenes)
-        self.log(f"  {model}: {len(run.results)} episodes, {run.steps_per_second:.0f} steps/s")
-        return run.results, {"steps_per_second": run.steps_per_second}
+        """An untrained baseline's results, evaluated once per experiment (Table 2 lists it per
+        training room type, with the same episodes and seed)."""
+        if model not in self._untrained:
+            run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.scenes)
+            self.log(f"  {model}: {len(run.results)} episodes, {run.steps_per_second:.0f} steps/s")
+            self._untrained[model] = (run.results, {"steps_per_second": run.steps_per_second})
+        return self._untrained[model]
 
     def trained(self, run_dir: Path, train_cfg) -> tuple[list[EpisodeResult], dict]:
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
@@ -319,10 +324,7 @@ def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         for room in config.rooms:
             log(f"{model}, {ROOM_ABBREV[room]}-single:")
             extra = {"env": {"scenes": config.single_room_scenes.get(room, f"train:{room}")}}
-            if model == "random":
-                per_seed, meta = _model_results(config, ev, model, log=log)
-            else:
-                per_seed, meta = _model_results(config, ev, model, f"{ROOM_ABBREV[room]}-single", extra, log)
+            per_seed, meta = _model_results(config, ev, model, f"{ROOM_ABBREV[room]}-single", extra, log)
             rec = model_record(
                 f"{model} {ROOM_ABBREV[room]}-single",
                 per_seed,
@@ -392,7 +394,7 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     ]
     lines = _header(config, "Table 3: ablation of the hierarchical relationships", ev, command)
     lines += [
-        "Each `<Room>_no_relationships` run drops that room type's target->parent edges from the hierarchical graph and its parent-object reward.",
+        "Each `<Room>_no_relationships` run drops the target->parent edges that only that room type's hierarchy adds to the graph (pairs the VG graph or another room type also links stay) and its parent-object reward.",
         "",
         markdown(header, rows),
         "",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mapless.errors import MaplessError
 from mapless.sim.build import build_scene_data, build_transitions
 from mapless.sim.camera import camera_basis, project
 from mapless.sim.config import SimConfig
@@ -168,3 +169,18 @@ def test_segment_crossing_an_obstacle_blocks_a_move_between_reachable_points():
     assert succ[diagonal, 0] == diagonal  # the diagonal to (0.25, 0.25) crosses the post
     north = (p * 8 + 0) * 2
     assert succ[north, 0] != north
+
+
+@pytest.mark.parametrize(
+    ("setting", "value"),
+    [
+        ("grid_size", 0.5),
+        ("rotation_step", 30),
+        ("ray_resolution", 80),
+        ("horizons", ()),
+        ("horizontal_fov", 180),
+    ],
+)
+def test_settings_the_simulator_cannot_honour_are_refused(setting, value):
+    with pytest.raises(MaplessError, match=f"sim.{setting} = .*: must be"):
+        SimConfig(**{setting: value})

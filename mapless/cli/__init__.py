@@ -1,5 +1,7 @@
-"""The ``mapless`` command line. Each sub-command group lives in its own module that exposes
-``register(subparsers)``; :data:`COMMAND_MODULES` lists them in help order."""
+"""mapless: object-goal visual navigation in AI2-THOR floor plans, without the simulator.
+
+Each sub-command group lives in its own module that exposes ``register(subparsers)``;
+:data:`COMMAND_MODULES` lists them in help order."""
 
 from __future__ import annotations
 

@@ -39,7 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="bfloat16 autocast for non-adaptive models (faster GCNs on CPUs with BF16)",
     )
-    ev.add_argument("--out", type=Path, help="output folder (default: RUN/eval, or reports/eval/<model>)")
+    ev.add_argument(
+        "--out",
+        type=Path,
+        help="output folder (default: the eval/ folder next to the model file, or reports/eval/<model>)",
+    )
     ev.set_defaults(func=_eval)
 
     rep = subparsers.add_parser(

@@ -109,7 +109,6 @@ def exploration_curve(
     return mean, count
 
 
-#: Per-episode scalar columns behind every aggregate metric (name -> function of a result).
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     """Per-episode arrays: success, spl, l5 membership, length, done, failed-action share, exploration."""
     n = len(results)

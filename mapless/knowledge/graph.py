@@ -83,7 +83,10 @@ def training_cooccurrence(set_name: str = "mjolnir101") -> np.ndarray:
 
 @functools.cache
 def hierarchical_adjacency(set_name: str = "mjolnir101", rooms: tuple[str, ...] = ROOM_TYPES) -> np.ndarray:
-    """``[C, C]`` float32 0/1: purified, self-looped VG graph plus target<->parent edges of ``rooms``."""
+    """``[C, C]`` float32 0/1: purified, self-looped VG graph plus target<->parent edges of ``rooms``.
+
+    Leaving a room type out of ``rooms`` (the Table 3 ablation) removes only the edges its hierarchy
+    alone adds: pairs the VG graph or another room type also links stay (docs/evaluation.md)."""
     from mapless.knowledge.parents import parent_lists
 
     for room in rooms:

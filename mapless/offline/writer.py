@@ -74,10 +74,6 @@ def check_transitions(scene_data: SceneData, keys: list[str], grid_size: float =
         raise MaplessError(f"scene {scene_data.scene} cannot be exported: two poses share a key")
 
 
-def _float(value: float) -> float:
-    return float(value)
-
-
 def export_scene(
     scene_data: SceneData,
     out_dir: str | Path,
@@ -137,7 +133,7 @@ def export_scene(
         # Visible instances first, then the others: the reader attributes boxes in this order.
         order = sorted(range(len(inst)), key=lambda j: (not vis[j], int(inst[j])))
         for j in order:
-            by_type.setdefault(types[inst[j]], []).extend(map(_float, box[j]))
+            by_type.setdefault(types[inst[j]], []).extend(map(float, box[j]))
         if v1_type_aliases:
             for object_type in list(by_type):
                 alias = V5_TO_V1.get(object_type)

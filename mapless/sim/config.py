@@ -30,25 +30,43 @@ class SimConfig:
     ray_resolution: int = 84
     category_set: str = "mjolnir101"
     #: Obstacle footprints are shrunk by this margin before testing a move's segment (the
-    #: reachable grid was filtered with the same margin).
+    #: reachable grid was filtered with the same margin): exactly on square footprints, less on the
+    #: long sides of elongated ones (:func:`mapless.sim.room.obstacle_polygons`).
     obstacle_margin: float = 0.1
     #: Distance from the reachable grid that still counts as room interior when walls are built.
     wall_clearance: float = 0.45
 
     def __post_init__(self) -> None:
+        # MoveAhead steps to a neighbour on the 0.25 m grid of the built-in scenes' reachable
+        # positions, straight or diagonal: other grids, and headings between the eight directions,
+        # have no neighbour to step to.
         checks = {
-            "image_size": self.image_size > 0,
-            "horizontal_fov": 0 < self.horizontal_fov < 180,
-            "eye_height": self.eye_height > 0,
-            "horizons": len(self.horizons) > 0 and all(-90 < h < 90 for h in self.horizons),
-            "rotation_step": self.rotation_step > 0 and 360 % self.rotation_step == 0,
-            "grid_size": self.grid_size > 0,
-            "visibility_distance": self.visibility_distance > 0,
-            "ray_resolution": self.ray_resolution > 0 and self.ray_resolution % 7 == 0,
+            "image_size": (self.image_size > 0, "must be > 0"),
+            "horizontal_fov": (0 < self.horizontal_fov < 180, "must be in (0, 180)"),
+            "eye_height": (self.eye_height > 0, "must be > 0"),
+            "horizons": (
+                len(self.horizons) > 0 and all(-90 < h < 90 for h in self.horizons),
+                "must be a non-empty list of angles in (-90, 90)",
+            ),
+            "rotation_step": (
+                self.rotation_step in (45, 90, 180),
+                "must be 45, 90 or 180 (MoveAhead steps to one of the eight grid neighbours)",
+            ),
+            "grid_size": (
+                self.grid_size == 0.25,
+                "must be 0.25 (the grid of the scenes' reachable positions)",
+            ),
+            "visibility_distance": (self.visibility_distance > 0, "must be > 0"),
+            "ray_resolution": (
+                self.ray_resolution > 0 and self.ray_resolution % 7 == 0,
+                "must be a positive multiple of 7 (the 7x7 feature map)",
+            ),
         }
-        for key, ok in checks.items():
+        for key, (ok, requirement) in checks.items():
             if not ok:
-                raise MaplessError(f"invalid simulator setting sim.{key} = {getattr(self, key)!r}")
+                raise MaplessError(
+                    f"invalid simulator setting sim.{key} = {getattr(self, key)!r}: {requirement}"
+                )
         object.__setattr__(self, "horizons", tuple(sorted(int(h) for h in self.horizons)))
 
     @property

@@ -33,9 +33,8 @@ def egocentric_view(
     walls = InteriorMask(scene, config.wall_clearance).wall_distances(np.array([[x, z]]))[0]
     frame = caster.render(x, z, yaw, horizon, walls)
     colours = np.array([type_colour(o.type) for o in scene.objects] + [FLOOR_RGB, WALL_RGB, [0, 0, 0]])
-    index = np.where(frame.ids >= 0, frame.ids, len(scene.objects) + {FLOOR: 0, WALL: 1}.get(-1, 2))
-    index = np.where(frame.ids == FLOOR, len(scene.objects), index)
-    index = np.where(frame.ids == WALL, len(scene.objects) + 1, index)
+    n = len(scene.objects)  # colours: objects, then floor, wall and nothing (a ray that hit no surface)
+    index = np.select([frame.ids >= 0, frame.ids == FLOOR, frame.ids == WALL], [frame.ids, n, n + 1], n + 2)
     shade = 1.0 / (1.0 + 0.25 * np.minimum(frame.depth, 20.0))
     image = colours[index] * (0.35 + 0.65 * shade)[:, None]
     return image.reshape(size, size, 3).clip(0, 255).astype(np.uint8)

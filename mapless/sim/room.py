@@ -105,8 +105,11 @@ def wall_distance_lookup(table_row: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 
 
 def obstacle_polygons(scene: Scene, margin: float) -> list[np.ndarray]:
-    """Footprints (``[4, 2]`` xz corners, shrunk by ``margin``) of objects that block motion:
-    non-pickupable objects resting on the floor."""
+    """Footprints (``[4, 2]`` xz corners) of objects that block motion: non-pickupable objects
+    resting on the floor, each corner moved ``margin * sqrt(2)`` toward the centre. That moves each
+    side of a square in by ``margin``, the long sides of an elongated footprint by less; an exact
+    inward offset of every side would change 4 MoveAhead transitions of the 120 floor plans
+    (docs/simulator.md), and cached scenes and reported numbers depend on these."""
     polygons = []
     for obj in scene.objects:
         if obj.pickupable or obj.type in NON_OBSTACLE_TYPES or obj.box_min[1] > 0.15:
