@@ -140,7 +140,7 @@ class InnerLoop:
             ...  # sample actions, step the environments
             loop.observe(state, out, alive)  # alive [B] bool: episode not ended by this step
             # optionally, between chunks of k steps: loop.compact(state, keep)
-        loop.backward(state, a3c_loss(...).total.sum())
+        loop.backward(state, a3c_loss(...).total.mean())  # the trainer averages episodes
     """
 
     def __init__(
