@@ -126,7 +126,7 @@ class AdaptiveModelAgent(ModelAgent):
         self.k = self.loop.steps
         self.start_every = self.k
         self.alive = torch.zeros(batch_size, dtype=torch.bool)
-        self.rows: list = []
+        self.output = None  # the last step's ModelOutput, for the inner loop's k-row buffer
 
     @property
     def updates(self) -> np.ndarray:
@@ -146,22 +146,16 @@ class AdaptiveModelAgent(ModelAgent):
         torch = self.torch
         # The graph must reach the current fast weights; only k steps of it are ever kept.
         with self.model.memoizing_in_view(self.memo):
-            out = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
-        probs = torch.softmax(out.logits, dim=-1)
-        self.rows.append(torch.cat([out.hidden[0], probs], dim=-1))
-        self.hidden = out.hidden
+            self.output = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
+        probs = torch.softmax(self.output.logits, dim=-1)
+        self.hidden = self.output.hidden
         self.prev_policy = probs
         return probs.detach().numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
-        torch = self.torch
-        ended = torch.from_numpy(step.terminated | step.truncated)
-        self.alive &= ~ended
-        if len(self.rows) < self.k:
-            return
-        due = self.alive & (self.state.slot_updates < self.loop.max_updates)
-        self.loop.adapt(self.state, torch.stack(self.rows, dim=1), due)
-        self.rows = []
+        self.alive &= ~self.torch.from_numpy(step.terminated | step.truncated)
+        # Every k steps the slots still running, and under their update limit, take an inner step.
+        self.loop.observe(self.state, self.output, self.alive)
 
 
 class OracleAgent:

@@ -264,23 +264,21 @@ class InnerLoop:
         """Per-episode ``[B, ...]`` fast weight, or θ_0 when the inner step does not adapt ``name``."""
         return state.fast[name] if name in state.fast else self.model.get_parameter(name)
 
-    def observe(self, state: InnerLoopState, output: ModelOutput, alive: Tensor) -> bool:
+    def observe(self, state: InnerLoopState, output: ModelOutput, alive: Tensor) -> None:
         """Record the step's row ``[h_t || π_t]``; after k rows take the inner step for the episodes
-        still running. Returns True when an inner step was taken."""
+        still running (``alive``), up to the update limit (training: per rollout; test time: per
+        slot's episode)."""
         row = torch.cat([output.hidden[0], torch.softmax(output.logits, dim=-1)], dim=-1)
         state.rows.append((row, state.ids))
         if len(state.rows) < self.steps:
-            return False
+            return
         # Every episode still in the batch ran the whole chunk: its rows are in every step's batch.
         rows = torch.stack([_align(r, ids, state.ids) for r, ids in state.rows], dim=1)
         state.rows = []  # SAVN resets the learned-loss buffer after every chunk of k
         if not self.meta_train:
             self.adapt(state, rows, alive & (state.slot_updates < self.max_updates))
-            return True
-        if state.updates >= self.max_updates or not bool(alive.any()):
-            return False
-        self.adapt(state, rows, alive)
-        return True
+        elif state.updates < self.max_updates and bool(alive.any()):
+            self.adapt(state, rows, alive)
 
     def compact(self, state: InnerLoopState, keep: Tensor) -> None:
         """Keep only the rows ``keep`` (increasing indices into the current batch) of ``state``
