@@ -13,7 +13,6 @@ The same code runs on every rank under torchrun (:mod:`mapless.train.distributed
 
 from __future__ import annotations
 
-import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -26,12 +25,14 @@ from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.common import (
     BuiltinLibrary,
+    GracefulStop,
     LibraryFactory,
     clip_gradients,
     configure_torch,
     fill_missing_gradients,
     new_model,
     reward_config,
+    run_summary,
     seed_for,
     target_fields,
     trainable,
@@ -44,31 +45,6 @@ from mapless.train.rollout import accumulate_gradients, make_actor, observation_
 
 #: Rows of the per-episode statistics exchanged between ranks.
 _EPISODE_ROWS = ("success", "spl", "length", "reward")
-
-
-class GracefulStop:
-    """First SIGINT: finish the current update, checkpoint and stop. Second SIGINT: abort at once."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous: Any = None
-
-    def __enter__(self) -> GracefulStop:
-        try:
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        except ValueError:  # not the main thread (e.g. a test harness): no handler, no graceful stop
-            self._previous = None
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        print("\nmapless: stopping after this update (Ctrl-C again to abort)", flush=True)
-
-    def __exit__(self, *exc: object) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
 
 
 class BatchedTrainer:
@@ -208,16 +184,9 @@ class BatchedTrainer:
             self._checkpoint(final=not stopped)
         finally:
             monitor.close()
-        end = loop_end
-        steady = (self.counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
-        return {
-            **{k: float(v) for k, v in self.counters.items()},
-            "seconds": time.perf_counter() - start,
-            "frames_per_s": (self.counters["frames"] - start_frames) / max(end - start, 1e-9),
-            "steady_frames_per_s": steady,
-            "running_success": monitor.running_success,
-            "stopped_early": float(stopped),
-        }
+        return run_summary(
+            self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
+        )
 
     def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
         """Merge statistics over ranks, advance counters, log and checkpoint. Returns True to stop."""

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import signal
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -100,3 +103,52 @@ def fill_missing_gradients(model: NavModel) -> None:
 def seed_for(config: TrainConfig, *stream: int) -> int:
     """Independent seeds per rank / worker / resumed segment from one config seed."""
     return int(np.random.SeedSequence([config.seed, *stream]).generate_state(1)[0])
+
+
+class GracefulStop:
+    """First SIGINT: finish the current update, checkpoint and stop. Second SIGINT: abort at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __enter__(self) -> GracefulStop:
+        try:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        except ValueError:  # not the main thread (e.g. a test harness): no handler, no graceful stop
+            self._previous = None
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\nmapless: stopping after this update (Ctrl-C again to abort)", flush=True)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+def run_summary(
+    counters: dict[str, int],
+    start: float,
+    start_frames: int,
+    first: tuple[float, int] | None,
+    end: float,
+    running_success: float,
+    stopped: bool,
+) -> dict[str, float]:
+    """What a trainer's ``run`` returns: its counters, the wall time, frames/s over the whole run and
+    from ``first`` (time and frames after the first update, allocation warm-up excluded) to ``end``
+    (the loop's end, before the final checkpoint), the running success rate and whether Ctrl-C
+    stopped it early."""
+    steady = (counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
+    return {
+        **{k: float(v) for k, v in counters.items()},
+        "seconds": time.perf_counter() - start,
+        "frames_per_s": (counters["frames"] - start_frames) / max(end - start, 1e-9),
+        "steady_frames_per_s": steady,
+        "running_success": running_success,
+        "stopped_early": float(stopped),
+    }

@@ -35,15 +35,16 @@ import torch.multiprocessing as mp
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
 from mapless.train import checkpoint as ckpt
-from mapless.train.batched import GracefulStop
 from mapless.train.common import (
     BuiltinLibrary,
+    GracefulStop,
     LibraryFactory,
     clip_gradients,
     configure_torch,
     fill_missing_gradients,
     new_model,
     reward_config,
+    run_summary,
     seed_for,
     target_fields,
     trainable,
@@ -283,16 +284,9 @@ class AsyncTrainer:
         finally:
             self._stop_workers()
             monitor.close()
-        end = loop_end
-        steady = (self.counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
-        return {
-            **{k: float(v) for k, v in self.counters.items()},
-            "seconds": time.perf_counter() - start,
-            "frames_per_s": (self.counters["frames"] - start_frames) / max(end - start, 1e-9),
-            "steady_frames_per_s": steady,
-            "running_success": monitor.running_success,
-            "stopped_early": float(stopped),
-        }
+        return run_summary(
+            self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
+        )
 
     def _account(self, stats: dict[str, float], monitor: RunMonitor) -> None:
         before = self.counters["episodes"]
