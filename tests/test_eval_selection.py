@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import json
+import os
+from dataclasses import replace
+
 import pytest
+from eval_fixtures import fixture_episodes
+from train_fixtures import fixture_library as training_scenes
+from train_fixtures import tiny_config
 
 from mapless.cli import main
 from mapless.errors import MaplessError
-from mapless.evaluate.runner import LibrarySpec
-from mapless.evaluate.selection import PROTOCOLS, best_index, load_episodes
+from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
+from mapless.evaluate.selection import PROTOCOLS, _cached_evaluate, best_index, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
+from mapless.train.run import train
 
 
 def test_best_by_success_then_spl_then_earliest():
@@ -56,3 +64,33 @@ def test_episode_sets_are_refused_under_other_simulator_settings():
 def test_select_refuses_to_report_on_the_selection_split(tmp_path, capsys):
     assert main(["eval", str(tmp_path), "--select", "--split", "val"]) != 0
     assert "reports on --split test" in capsys.readouterr().err
+
+
+@pytest.mark.usefixtures("single_torch_thread")
+def test_evaluation_cache_hits_and_misses(tmp_path):
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=training_scenes)
+    model = run / "final_model.pt"
+    spec, episodes = AgentSpec(checkpoint=str(model)), fixture_episodes(per_scene=2)
+    settings, scenes = (
+        EvalSettings(batch_size=4, workers=1),
+        LibrarySpec(factory="eval_fixtures:fixture_library"),
+    )
+    cache = tmp_path / "eval" / "test_final_model.json"
+
+    def evaluated(**changes) -> bool:
+        """True if the call evaluated; False if it returned the cached results (marked below)."""
+        run = _cached_evaluate(spec, episodes, replace(settings, **changes), scenes, cache)
+        return run.seconds != -1.0
+
+    assert evaluated()
+    stored = json.loads(cache.read_text())
+    cache.write_text(json.dumps({**stored, "seconds": -1.0}))  # a marker only a cache hit returns
+    assert not evaluated(workers=2)  # results do not depend on the worker count
+    assert evaluated(seed=1)
+    cache.write_text(json.dumps({**stored, "seconds": -1.0}))
+    stat = model.stat()
+    os.utime(model, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # as a resumed run rewrites it
+    assert evaluated()
+    cache.write_text(cache.read_text()[:100])  # torn by an older, non-atomic writer
+    assert evaluated() and json.loads(cache.read_text())["episodes"]

@@ -122,7 +122,12 @@ def _cached_evaluate(
     cache: Path | None,
 ) -> EvalRun:
     """Evaluate, reusing ``cache`` when it holds the same checkpoint, episodes and settings."""
-    key = {"spec": asdict(spec), "episodes": episodes_digest(episodes), "settings": asdict(settings)}
+    # Results do not depend on the worker count (tests/test_eval_runner.py), so it is not in the key.
+    settings_key = {k: v for k, v in asdict(settings).items() if k != "workers"}
+    key = {"spec": asdict(spec), "episodes": episodes_digest(episodes), "settings": settings_key}
+    if spec.checkpoint:  # a resumed run rewrites final_model.pt under the same name
+        stat = Path(spec.checkpoint).stat()
+        key["model_file"] = [stat.st_size, stat.st_mtime_ns]
     if cache is not None and cache.is_file():
         try:
             stored = read_json(cache)
