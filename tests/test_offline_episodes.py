@@ -261,3 +261,30 @@ def test_cli_import_then_export(sample, floorplan425, tmp_path, monkeypatch, cap
     assert not bad and len(back) == len(episodes)
     assert [b.target_ids for b in back] == [e.target_ids for e in episodes]
     assert back[0].embedding.shape == (300,)
+
+
+def test_import_onto_an_offline_root_keeps_its_object_ids(sample, floorplan425, tmp_path, capsys):
+    import argparse
+
+    from mapless.cli import interop
+    from mapless.episodes import evalsets
+    from mapless.offline.writer import export_scene
+    from mapless.sim.library import SceneLibrary
+
+    export_scene(floorplan425, tmp_path / "root", "savn")
+    entries = [e for e in pickle.loads(sample.read_bytes()) if e["scene"] == "FloorPlan425"][:10]
+    small = tmp_path / "bathroom_small.pkl"
+    small.write_bytes(pickle.dumps(entries))
+    parser = argparse.ArgumentParser()
+    interop.register(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "imported.json.gz"
+    args = parser.parse_args(
+        ["interop", "episodes-import", str(small), "--out", str(out), "--offline-dir", str(tmp_path / "root")]
+    )
+    assert args.func(args) == 0
+    episodes, _ = evalsets.load(out)
+    offline = SceneLibrary.offline(tmp_path / "root")["FloorPlan425"]
+    assert episodes and all(set(e.target_ids) <= set(offline.instance_ids) for e in episodes)
+    for e in episodes:  # the stored shortest paths are the offline root's
+        goal = offline.goal_mask_for_instances(offline.goal_instances(e.target, e.target_ids))
+        assert e.optimal_length == offline.distances_to(goal)[offline.pose_index[pose_key(*e.start)]] + 1

@@ -5,7 +5,7 @@
 * ``mapless thor scrape SCENES --out DIR``: offline folders scraped from a live AI2-THOR.
 * ``mapless interop check DIR``: load offline folders as training would and summarise them.
 * ``mapless interop episodes-import FILE.pkl``: map a published episode pickle onto the built-in
-  scenes (a mapless episode file).
+  scenes, or onto an offline root's (a mapless episode file).
 * ``mapless interop episodes-export SOURCE --format savn|mjolnir --out FILE.pkl``: our episode
   sets as evaluation pickles for the original code bases.
 """
@@ -56,7 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.set_defaults(func=_check)
 
     imp = sub.add_parser(
-        "episodes-import", help="map a SAVN/MJOLNIR/HOZ episode pickle onto the built-in scenes"
+        "episodes-import",
+        help="map a SAVN/MJOLNIR/HOZ episode pickle onto the built-in (or an offline root's) scenes",
     )
     imp.add_argument("file", type=Path)
     imp.add_argument("--out", type=Path, help="mapless episode file to write (.json.gz)")
@@ -64,6 +65,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("--max-start-distance", type=float, default=0.36, help="m (default 0.36)")
     imp.add_argument("--target-set", default="imported", help="label stored in the episode file")
     imp.add_argument("--show-skipped", action="store_true", help="list every skipped episode")
+    imp.add_argument(
+        "--offline-dir",
+        type=Path,
+        help="map onto the scenes of this SAVN/MJOLNIR offline root instead of the built-in ones "
+        "(for evaluation with `mapless eval --offline-dir`: object ids then match the root's)",
+    )
     add_sim_arguments(imp)
     imp.set_defaults(func=_import_episodes)
 
@@ -180,7 +187,10 @@ def _import_episodes(args: argparse.Namespace) -> int:
     from mapless.sim.library import SceneLibrary
 
     config = sim_config_from(args)
-    library = SceneLibrary.builtin(config, args.cache_dir)
+    if args.offline_dir:
+        library = SceneLibrary.offline(args.offline_dir, config.category_set)
+    else:
+        library = SceneLibrary.builtin(config, args.cache_dir)
     report = import_episode_file(
         args.file,
         scene_data=library.__getitem__,
