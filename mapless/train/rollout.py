@@ -193,7 +193,9 @@ class Actor:
         self, loss: Tensor, params: list[Tensor], retain_graph: bool = False
     ) -> tuple[Tensor | None, ...]:
         """``torch.autograd.grad(loss, params, allow_unused=True)`` of this rollout, the deferred LSTM
-        matrix gradients included (for adaptive models: the second-order meta-gradient)."""
+        matrix gradients included. For adaptive models that is the second-order meta-gradient, even
+        when the actor was made with ``first_order=True`` (only :meth:`backward` applies that option);
+        tests use it to take per-episode gradients from a batched rollout."""
         lstm = self.state.lstm if self.state is not None else self.lstm
         if lstm is None:
             return torch.autograd.grad(loss, params, retain_graph=retain_graph, allow_unused=True)
