@@ -1,0 +1,135 @@
+"""Precision study (a benchmark, not a test): does bfloat16 make cvmeta's training collapse?
+
+Trains the learning check's configuration (experiments/train_learning_check.yaml: cvmeta, training
+kitchens, B = 32, lr 5e-4) once per precision and seed, on an episode budget (so the runs do not
+depend on the machine's speed), one torch thread each and ``--parallel`` at a time. A run folder that
+exists already is resumed up to the budget (resume is exact) or, when finished, only read. Then it
+prints, per run, the training success of the last 3,200 episodes, the lowest policy entropy, the
+largest gradient norm and whether the policy collapsed (a record with success 0 and entropy below
+0.3: the deterministic no-``Done`` policy seen in earlier bf16 runs), and plots success and entropy
+against episodes.
+
+    python bench/precision_study.py [--seeds 2,3] [--precisions fp32,bf16] [--episodes 30000]
+                                    [--parallel 2] [--runs runs/precision_study] [--out reports/precision_study]
+                                    [--no-train]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "train_learning_check.yaml"
+COLLAPSE_ENTROPY = 0.3
+LAST_RECORDS = 5  # 5 x log_every 640 = the last 3,200 episodes
+
+
+def command(run_dir: Path, precision: str, seed: int, episodes: int) -> list[str]:
+    """``mapless train`` for a run: fresh, or resumed from its checkpoint up to ``episodes``."""
+    mapless = [sys.executable, "-m", "mapless", "train"]
+    if (run_dir / "checkpoint.pt").is_file():
+        return [*mapless, "--resume", str(run_dir), "--set", f"episodes={episodes}"]
+    sets = [f"episodes={episodes}", f"seed={seed}", f"precision={precision}", "threads=1", "progress=false"]
+    return [*mapless, str(CONFIG), "--run-dir", str(run_dir), *(a for s in sets for a in ("--set", s))]
+
+
+def records(run_dir: Path) -> list[dict]:
+    path = run_dir / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+
+
+def finished(run_dir: Path, episodes: int) -> bool:
+    found = records(run_dir)
+    return (run_dir / "final_model.pt").is_file() and bool(found) and found[-1]["episodes"] >= episodes
+
+
+def summary(run: str, found: list[dict]) -> dict:
+    success = np.array([r["charts/success"] for r in found])
+    entropy = np.array([r["losses/entropy"] for r in found])
+    norms = [r["losses/grad_norm"] for r in found if "losses/grad_norm" in r]
+    collapsed = (success == 0) & (entropy < COLLAPSE_ENTROPY)
+    return {
+        "run": run,
+        "episodes": found[-1]["episodes"],
+        "final_success": float(success[-LAST_RECORDS:].mean()),
+        "best_success": float(success.max()),
+        "min_entropy": float(entropy.min()),
+        "max_grad_norm": float(max(norms)) if norms else None,
+        "collapsed_at": int(found[int(np.argmax(collapsed))]["episodes"]) if collapsed.any() else None,
+        "frames_per_s": float(np.median([r["perf/frames_per_s"] for r in found])),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="2,3")
+    parser.add_argument("--precisions", default="fp32,bf16")
+    parser.add_argument("--episodes", type=int, default=30000)
+    parser.add_argument("--parallel", type=int, default=2)
+    parser.add_argument("--runs", type=Path, default=Path("runs/precision_study"))
+    parser.add_argument("--out", type=Path, default=Path("reports/precision_study"))
+    parser.add_argument("--no-train", action="store_true", help="only report on the runs as they stand")
+    args = parser.parse_args()
+
+    runs = [(p, int(s)) for s in args.seeds.split(",") for p in args.precisions.split(",")]
+    pending = [(p, s) for p, s in runs if not finished(args.runs / f"{p}_s{s}", args.episodes)]
+    if args.no_train:
+        pending = []
+    args.runs.mkdir(parents=True, exist_ok=True)
+    for start in range(0, len(pending), args.parallel):
+        jobs = []
+        for precision, seed in pending[start : start + args.parallel]:
+            run_dir = args.runs / f"{precision}_s{seed}"
+            log = (args.runs / f"{run_dir.name}.log").open("a")
+            print(f"training {run_dir.name} to {args.episodes} episodes (log: {log.name})", flush=True)
+            jobs.append(
+                subprocess.Popen(command(run_dir, precision, seed, args.episodes), stdout=log, stderr=log)
+            )
+        for job in jobs:
+            if job.wait() != 0:
+                raise SystemExit(
+                    f"a training run failed (exit {job.returncode}); see the logs in {args.runs}"
+                )
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table = []
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for precision, seed in runs:
+        name = f"{precision}_s{seed}"
+        found = records(args.runs / name)
+        table.append(summary(name, found))
+        x = [r["episodes"] for r in found]
+        style = {"color": "C0" if precision == "fp32" else "C3", "alpha": 0.5 + 0.5 * (seed % 2)}
+        top.plot(x, [r["charts/success"] for r in found], label=name, **style)
+        bottom.plot(x, [r["losses/entropy"] for r in found], **style)
+    top.set_ylabel("training success (640 episodes)")
+    bottom.set_ylabel("policy entropy per step")
+    bottom.set_xlabel("training episodes")
+    bottom.axhline(COLLAPSE_ENTROPY, color="gray", linestyle="--", linewidth=0.8)
+    top.legend(ncol=2, fontsize=8)
+    top.set_title("cvmeta learning check, fp32 vs bf16")
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out / "precision_study.png", dpi=120)
+    (args.out / "precision_study.json").write_text(json.dumps(table, indent=2))
+    header = "run         episodes  success(last 3200)  best   min entropy  max |g|  collapsed at  frames/s"
+    print(header)
+    for row in table:
+        collapsed = row["collapsed_at"] if row["collapsed_at"] is not None else "-"
+        norm = f"{row['max_grad_norm']:.0f}" if row["max_grad_norm"] is not None else "-"
+        print(f"{row['run']:<11} {row['episodes']:>8}  {row['final_success']:>18.3f}  {row['best_success']:.3f}"
+              f"  {row['min_entropy']:>11.2f}  {norm:>7}  {collapsed!s:>12}  {row['frames_per_s']:>8.0f}")  # fmt: skip
+    print(f"curves: {args.out / 'precision_study.png'}")
+
+
+if __name__ == "__main__":
+    main()
