@@ -121,9 +121,9 @@ class Actor:
     """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop.
 
     Both run the model's LSTM through a :class:`~mapless.train.rollout_lstm.RolloutLstm` (one weight
-    gradient per rollout instead of one per step). :meth:`compact` drops ended episodes from the
-    batch being stepped, so neither the forward pass nor the per-episode fast weights are computed
-    for finished episodes.
+    gradient per rollout instead of one per step). :func:`run_batch` steps only the episodes still
+    running, so no forward pass is computed for finished ones; :meth:`compact` drops them from the
+    inner loop's per-episode fast weights too.
     """
 
     def __init__(self, model: NavModel, inner: InnerLoop | None, dtype: torch.dtype | None = None):
