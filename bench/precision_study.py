@@ -5,9 +5,10 @@ kitchens, B = 32, lr 5e-4) once per precision and seed, on an episode budget (so
 depend on the machine's speed), one torch thread each and ``--parallel`` at a time. A run folder that
 exists already is resumed up to the budget (resume is exact) or, when finished, only read. Then it
 prints, per run, the training success of the last 3,200 episodes, the lowest policy entropy, the
-largest gradient norm and whether the policy collapsed (a record with success 0 and entropy below
-0.3: the deterministic no-``Done`` policy seen in earlier bf16 runs), and plots success and entropy
-against episodes.
+largest gradient norm and where the policy fell into the no-``Done`` state seen in earlier bf16 runs
+(a record with success at most 1 % and episodes within 10 % of the step limit: the agent stops
+calling ``Done`` and wanders, collecting parent-object rewards, with its entropy high or low), and
+plots success, episode length and entropy against episodes.
 
     python bench/precision_study.py [--seeds 2,3] [--precisions fp32,bf16] [--episodes 30000]
                                     [--parallel 2] [--runs runs/precision_study] [--out reports/precision_study]
@@ -25,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "train_learning_check.yaml"
-COLLAPSE_ENTROPY = 0.3
+NO_DONE_SUCCESS = 0.01
+NO_DONE_LENGTH = 0.9  # share of the step limit
 LAST_RECORDS = 5  # 5 x log_every 640 = the last 3,200 episodes
 
 
@@ -48,11 +50,12 @@ def finished(run_dir: Path, episodes: int) -> bool:
     return (run_dir / "final_model.pt").is_file() and bool(found) and found[-1]["episodes"] >= episodes
 
 
-def summary(run: str, found: list[dict]) -> dict:
+def summary(run: str, found: list[dict], max_steps: int) -> dict:
     success = np.array([r["charts/success"] for r in found])
     entropy = np.array([r["losses/entropy"] for r in found])
+    length = np.array([r["charts/episode_length"] for r in found])
     norms = [r["losses/grad_norm"] for r in found if "losses/grad_norm" in r]
-    collapsed = (success == 0) & (entropy < COLLAPSE_ENTROPY)
+    collapsed = (success <= NO_DONE_SUCCESS) & (length >= NO_DONE_LENGTH * max_steps)
     return {
         "run": run,
         "episodes": found[-1]["episodes"],
@@ -60,7 +63,8 @@ def summary(run: str, found: list[dict]) -> dict:
         "best_success": float(success.max()),
         "min_entropy": float(entropy.min()),
         "max_grad_norm": float(max(norms)) if norms else None,
-        "collapsed_at": int(found[int(np.argmax(collapsed))]["episodes"]) if collapsed.any() else None,
+        "no_done_at": int(found[int(np.argmax(collapsed))]["episodes"]) if collapsed.any() else None,
+        "no_done_records": int(collapsed.sum()),
         "frames_per_s": float(np.median([r["perf/frames_per_s"] for r in found])),
     }
 
@@ -100,34 +104,41 @@ def main() -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import yaml
 
     table = []
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    styles = ("-", "--", ":", "-.")
     for precision, seed in runs:
         name = f"{precision}_s{seed}"
         found = records(args.runs / name)
-        table.append(summary(name, found))
+        max_steps = yaml.safe_load((args.runs / name / "config.yaml").read_text())["env"]["max_steps"]
+        table.append(summary(name, found, max_steps))
         x = [r["episodes"] for r in found]
-        style = {"color": "C0" if precision == "fp32" else "C3", "alpha": 0.5 + 0.5 * (seed % 2)}
+        style = {"color": "C0" if precision == "fp32" else "C3", "linestyle": styles[seed % len(styles)]}
         top.plot(x, [r["charts/success"] for r in found], label=name, **style)
+        middle.plot(x, [r["charts/episode_length"] for r in found], **style)
         bottom.plot(x, [r["losses/entropy"] for r in found], **style)
-    top.set_ylabel("training success (640 episodes)")
+    top.set_ylabel("training success")
+    middle.set_ylabel("episode length")
+    middle.axhline(max_steps, color="gray", linestyle="--", linewidth=0.8)
     bottom.set_ylabel("policy entropy per step")
-    bottom.set_xlabel("training episodes")
-    bottom.axhline(COLLAPSE_ENTROPY, color="gray", linestyle="--", linewidth=0.8)
+    bottom.set_xlabel(
+        f"training episodes (points: means of {yaml.safe_load(CONFIG.read_text())['log_every']})"
+    )
     top.legend(ncol=2, fontsize=8)
     top.set_title("cvmeta learning check, fp32 vs bf16")
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / "precision_study.png", dpi=120)
     (args.out / "precision_study.json").write_text(json.dumps(table, indent=2))
-    header = "run         episodes  success(last 3200)  best   min entropy  max |g|  collapsed at  frames/s"
+    header = "run         episodes  success(last 3200)  best   min entropy  max |g|  no Done at (records)  frames/s"
     print(header)
     for row in table:
-        collapsed = row["collapsed_at"] if row["collapsed_at"] is not None else "-"
+        no_done = f"{row['no_done_at']} ({row['no_done_records']})" if row["no_done_at"] is not None else "-"
         norm = f"{row['max_grad_norm']:.0f}" if row["max_grad_norm"] is not None else "-"
         print(f"{row['run']:<11} {row['episodes']:>8}  {row['final_success']:>18.3f}  {row['best_success']:.3f}"
-              f"  {row['min_entropy']:>11.2f}  {norm:>7}  {collapsed!s:>12}  {row['frames_per_s']:>8.0f}")  # fmt: skip
+              f"  {row['min_entropy']:>11.2f}  {norm:>7}  {no_done:>20}  {row['frames_per_s']:>8.0f}")  # fmt: skip
     print(f"curves: {args.out / 'precision_study.png'}")
 
 
