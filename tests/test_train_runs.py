@@ -57,6 +57,7 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
     # As if the run had logged 12 episodes and been killed before its next checkpoint.
     with (halted / "metrics.jsonl").open("a") as f:
         f.write(json.dumps({"episodes": 12, "frames": 0, "time": 0.0, "lost": True}) + "\n")
+        f.write('{"episodes": 16, "fra')  # and torn by the kill mid-line
     resumed_config, state = resume_config(halted, ["episodes=16"])
     assert resumed_config == config
     train(resumed_config, halted, resume=state, library_factory=fixture_library)

@@ -84,9 +84,7 @@ class RunMonitor:
         self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1 if episodes else None)
         metrics = Path(run_dir) / METRICS_FILE
         if episodes and metrics.is_file():
-            kept = [line for line in metrics.read_text().splitlines(keepends=True)
-                    if json.loads(line)["episodes"] <= episodes]  # fmt: skip
-            write_text(metrics, "".join(kept))
+            write_text(metrics, "".join(_records_up_to(metrics, episodes)))
         self._jsonl = open(metrics, "a")  # noqa: SIM115 - kept open for the run
         self._by_frames = budget_episodes == 0
         total = budget_frames if self._by_frames else budget_episodes
@@ -185,3 +183,17 @@ class RunMonitor:
             self._jsonl.close()
         if self.bar is not None:
             self.bar.close()
+
+
+def _records_up_to(path: Path, episodes: int) -> list[str]:
+    """The lines of a metrics file whose record is at or before ``episodes`` (a line torn by a kill
+    mid-write is dropped too)."""
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if record["episodes"] <= episodes:
+            kept.append(line + "\n")
+    return kept
