@@ -42,7 +42,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--out",
         type=Path,
-        help="output folder (default: the eval/ folder next to the model file, or reports/eval/<model>)",
+        help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
+        "reports/eval/<model> for random and oracle)",
     )
     ev.set_defaults(func=_eval)
 
