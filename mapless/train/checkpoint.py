@@ -87,7 +87,7 @@ def save_run_state(
     Weights and optimizer moments are copied once, up front, and every file is written from the
     copies: Hogwild workers keep updating the shared tensors while the files are written, and the
     three files must hold one and the same state."""
-    weights = _copy({k: v.detach() for k, v in model.state_dict().items()})
+    weights = _copy(model.state_dict())
     state = {
         "format": FORMAT_VERSION,
         "kind": "checkpoint",
