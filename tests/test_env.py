@@ -216,3 +216,26 @@ def test_episodes_naming_their_instances_aim_at_those_only(library):
         NavEnv(library, [SCENE]).reset(options={"episode": ghost})
     with pytest.raises(MaplessError, match=r"no object Toaster\|9\|9\|9"):
         BatchedNavEnv(library, [SCENE], 1).reset([0], [ghost])
+
+
+def test_a_category_set_that_contradicts_the_targets_or_the_scenes_is_refused(library):
+    from mapless.sim.task import TargetFields
+
+    episode, _ = far_episode(library)
+    all_types, mjolnir = TargetFields("all_types"), TargetFields("mjolnir101")
+    for make in (
+        lambda **kw: NavEnv(library, episodes=[episode], **kw),
+        lambda **kw: BatchedNavEnv(library, [SCENE], 1, **kw),
+    ):
+        with pytest.raises(MaplessError, match="differs from the given targets"):
+            make(targets=all_types, category_set="mjolnir101")
+        # The same set twice is fine, and so is either alone.
+        assert make(targets=mjolnir, category_set="mjolnir101").targets is mjolnir
+        assert make(targets=mjolnir).targets is mjolnir
+        assert make(category_set="mjolnir101").targets.category_set_name == "mjolnir101"
+    # The built-in scenes have the 101 rows of mjolnir101: all_types' 117 would misread them.
+    with pytest.raises(MaplessError, match="117"):
+        BatchedNavEnv(library, [SCENE], 1, category_set="all_types")
+    env = NavEnv(library, episodes=[episode], targets=all_types)
+    with pytest.raises(MaplessError, match="category rows"):
+        env.reset(seed=0)

@@ -26,7 +26,13 @@ from mapless.errors import MaplessError
 from mapless.knowledge.parents import parent_reward
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import ACTIONS, DONE
-from mapless.sim.task import RewardConfig, TargetFields, max_steps_for
+from mapless.sim.task import (
+    RewardConfig,
+    TargetFields,
+    check_scene_categories,
+    max_steps_for,
+    resolve_target_fields,
+)
 
 ENV_ID = "mapless/ObjectNav-v0"
 
@@ -43,14 +49,14 @@ class NavEnv(gym.Env):
         rewards: RewardConfig | None = None,
         mode: str = "train",
         max_steps: int | None = None,
-        category_set: str = "mjolnir101",
+        category_set: str | None = None,
     ):
         if episodes is None and sampler is None:
             raise MaplessError("NavEnv needs a list of episodes or an episode sampler")
         self.library = library
         self.episodes = episodes
         self.sampler = sampler
-        self.targets = targets or TargetFields(category_set)
+        self.targets = resolve_target_fields(targets, category_set)
         self.rewards = rewards or RewardConfig()
         self.mode = mode
         self.fixed_max_steps = max_steps
@@ -82,6 +88,7 @@ class NavEnv(gym.Env):
     def _load_scene(self, scene: str) -> None:
         if scene != self._scene_name:
             self.data = self.library[scene]
+            check_scene_categories(self.data, self.targets)
             # One float32 copy per scene keeps each step a view, not a conversion.
             self._features = self.data.features.astype(np.float32) * np.float32(self.data.feature_scale)
             self._context = self.data.context

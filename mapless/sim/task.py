@@ -4,13 +4,18 @@ and how a target is turned into observation fields."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mapless.errors import MaplessError
 from mapless.knowledge.glove import glove_vector
 from mapless.knowledge.parents import parent_weights
 from mapless.scenes.catalogue import ROOM_TYPES
 from mapless.scenes.categories import category_set
+
+if TYPE_CHECKING:
+    from mapless.sim.scene_data import SceneData
 
 #: SAVN's evaluation limits: 100 steps, 200 in living rooms; training episodes stop at 30.
 TRAIN_MAX_STEPS = 30
@@ -64,3 +69,28 @@ class TargetFields:
         if key not in self._parents:
             self._parents[key] = parent_weights(room_type, target, self.category_set_name)
         return self._parents[key]
+
+
+def resolve_target_fields(targets: TargetFields | None, category_set: str | None) -> TargetFields:
+    """The environments' target fields: ``targets`` if given, else those of ``category_set``
+    (default ``mjolnir101``). Both given and naming different sets is an error: the observation's
+    category rows would silently follow one and the caller expect the other."""
+    if targets is None:
+        return TargetFields(category_set or "mjolnir101")
+    if category_set is not None and category_set != targets.category_set_name:
+        raise MaplessError(
+            f"category_set {category_set!r} differs from the given targets' "
+            f"{targets.category_set_name!r}; pass one of them"
+        )
+    return targets
+
+
+def check_scene_categories(data: SceneData, targets: TargetFields) -> None:
+    """A scene whose context rows are not the targets' category set is refused by name."""
+    rows, expected = data.context.shape[1], len(targets.categories)
+    if rows != expected:
+        raise MaplessError(
+            f"scene {data.scene} has {rows} category rows, the {targets.category_set_name!r} "
+            f"category set {expected}: the scenes were built for another category set "
+            "(sim.category_set)"
+        )

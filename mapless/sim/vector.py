@@ -18,7 +18,13 @@ from mapless.episodes.episode import Episode
 from mapless.knowledge.parents import parent_reward
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
-from mapless.sim.task import RewardConfig, TargetFields, max_steps_for
+from mapless.sim.task import (
+    RewardConfig,
+    TargetFields,
+    check_scene_categories,
+    max_steps_for,
+    resolve_target_fields,
+)
 
 
 @dataclass
@@ -43,16 +49,18 @@ class BatchedNavEnv:
         rewards: RewardConfig | None = None,
         mode: str = "train",
         max_steps: int | None = None,
-        category_set: str = "mjolnir101",
+        category_set: str | None = None,
     ):
         self.library = library
         self.batch_size = batch_size
-        self.targets = targets or TargetFields(category_set)
+        self.targets = resolve_target_fields(targets, category_set)
         self.rewards = rewards or RewardConfig()
         self.mode = mode
         self.fixed_max_steps = max_steps
         self.scene_names = list(dict.fromkeys(scenes))
         datas = [library[s] for s in self.scene_names]
+        for data in datas:
+            check_scene_categories(data, self.targets)
         self.scene_offset = dict(
             zip(self.scene_names, np.cumsum([0] + [d.n_poses for d in datas[:-1]]), strict=True)
         )

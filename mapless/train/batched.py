@@ -86,7 +86,6 @@ class BatchedTrainer:
             rewards=reward_config(cfg),
             mode="train",
             max_steps=cfg.env.max_steps,
-            category_set=cfg.model.category_set,
         )
         if resume is not None:
             self._restore(resume)

@@ -90,7 +90,6 @@ def _worker(
             rewards=reward_config(config),
             mode="train",
             max_steps=config.env.max_steps,
-            category_set=config.model.category_set,
         )
         device = torch.device("cpu")
         local = new_model(config)
