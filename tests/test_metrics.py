@@ -3,6 +3,7 @@ ratio, bootstrap intervals and the report cells."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -118,6 +119,20 @@ def test_seed_estimates_mean_std_over_seeds():
     assert est["success"].ci_low <= 0.35 <= est["success"].ci_high
     with pytest.raises(ValueError):
         seed_estimates([seed_a, seed_b[:5]])
+
+
+def test_episodes_stored_without_poses_are_left_out_of_the_exploration_ratio_everywhere():
+    # Ratios: [1, 2, 1] -> 1.0 (3 distinct of 3), [1, 1, 1, 1] -> 0.25; the third has no poses.
+    results = [ep(0, True, 3, 3), ep(1, False, 4, 4, poses=[7, 7, 7, 7])]
+    results.append(dataclasses.replace(ep(2, True, 5, 5), poses=()))
+    assert aggregate(results)["exploration_ratio"] == pytest.approx((1.0 + 0.25) / 2)
+    est = seed_estimates([results, results])["exploration_ratio"]
+    assert est.mean == pytest.approx((1.0 + 0.25) / 2) and est.episodes == 2
+    assert est.ci_low >= 0.25 and est.ci_high <= 1.0
+    # No poses at all: unknown, not a warning-laden 0.
+    bare = [dataclasses.replace(r, poses=()) for r in results]
+    assert math.isnan(aggregate(bare)["exploration_ratio"])
+    assert math.isnan(seed_estimates([bare])["exploration_ratio"].mean)
 
 
 def test_report_cells_and_table():

@@ -168,7 +168,7 @@ def aggregate(results: Sequence[EpisodeResult]) -> dict[str, float]:
         "ep_length": mean_or_nan(v["ep_length"]),
         "done_rate": mean_or_nan(v["done"]),
         "failed_action_rate": float(v["failed_actions"].sum() / max(v["ep_length"].sum(), 1.0)),
-        "exploration_ratio": float(np.nanmean(v["exploration"])),
+        "exploration_ratio": mean_or_nan(v["exploration"][np.isfinite(v["exploration"])]),
         "reward": mean_or_nan(v["reward"]),
     }
 

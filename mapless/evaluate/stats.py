@@ -93,9 +93,11 @@ def seed_estimates(per_seed: Sequence[Sequence[EpisodeResult]], seed: int = 0) -
     out: dict[str, Estimate] = {}
     for name, (column, l5_only) in CI_METRICS.items():
         mask = columns[0]["l5"] if l5_only else np.ones(len(keys), dtype=bool)
-        matrix = np.stack([c[column][mask] for c in columns])
         if column == "exploration":
-            matrix = np.nan_to_num(matrix, nan=0.0)
+            # An episode stored without its poses has no known ratio: left out, as aggregate() and
+            # the exploration curve leave it out (counted as 0 it would pull the estimate down).
+            mask = mask & np.all([np.isfinite(c[column]) for c in columns], axis=0)
+        matrix = np.stack([c[column][mask] for c in columns])
         per_seed_values = matrix.mean(axis=1) if matrix.shape[1] else np.full(len(columns), np.nan)
         mean, std = mean_std(per_seed_values)
         low, high = bootstrap_ci(matrix, seed=seed)
