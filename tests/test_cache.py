@@ -60,3 +60,18 @@ def test_damaged_entries_are_detected_and_rebuilt(tmp_path, damage):
     rebuilt = cache.load_or_build(SCENE, FAST, tmp_path)
     np.testing.assert_array_equal(rebuilt.successors, original.successors)
     cache.load(path, FAST)  # the rebuilt file is valid again
+
+
+def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path, monkeypatch):
+    from mapless.sim.library import SceneLibrary
+
+    cache.load_or_build(SCENE, FAST, tmp_path)
+    kept = cache.cache_path(SCENE, FAST, tmp_path)
+    stamp = kept.stat().st_mtime_ns
+    library = SceneLibrary.builtin(FAST, tmp_path)
+    library.prepare([SCENE, "FloorPlan25", SCENE], progress=False)
+    assert cache.cache_path("FloorPlan25", FAST, tmp_path).exists()
+    assert kept.stat().st_mtime_ns == stamp  # the existing file was neither rebuilt nor rewritten
+    monkeypatch.setattr(cache, "build_many", lambda *a, **k: pytest.fail("nothing was missing"))
+    library.prepare([SCENE, "FloorPlan25"], progress=False)
+    assert cache.build_missing([SCENE, "FloorPlan25"], FAST, tmp_path) == []

@@ -471,7 +471,9 @@ def evaluate(
     settings = settings or EvalSettings()
     library = library or LibrarySpec()
     episodes = list(episodes)
-    workers = max(1, min(settings.workers, len({e.scene for e in episodes})))
+    scenes = sorted({e.scene for e in episodes})
+    library.build().prepare(scenes, progress=progress is not None)
+    workers = max(1, min(settings.workers, len(scenes)))
     shares = partition(episodes, workers)
     jobs = [(agent, library, [episodes[i] for i in share], share, settings, 1) for share in shares]
     start = time.perf_counter()

@@ -149,6 +149,24 @@ def build_many(
     return paths
 
 
+def build_missing(
+    scenes: list[str],
+    config: SimConfig,
+    cache_dir: Path | None = None,
+    workers: int = 2,
+    progress: bool = True,
+) -> list[str]:
+    """Build, in parallel, the scenes that have no cache file yet; returns their names.
+
+    A stale or corrupt file is left to :func:`load_or_build`, which rebuilds it on first use: that is
+    rare (the fingerprint is in the folder name), while a fresh machine misses every scene.
+    """
+    missing = [s for s in dict.fromkeys(scenes) if not cache_path(s, config, cache_dir).exists()]
+    if missing:
+        build_many(missing, config, cache_dir, workers=workers, progress=progress)
+    return missing
+
+
 def _build_job(job: tuple) -> Path:
     scene, config, cache_dir, rebuild = job
     load_or_build(scene, config, cache_dir, rebuild)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -16,16 +16,31 @@ class SceneLibrary:
     """Loads scenes on first use through ``loader`` and keeps them (all of iTHOR fits in memory:
     about 1 GB of uint8 feature maps for the 120 scenes)."""
 
-    def __init__(self, loader: Callable[[str], SceneData]):
+    def __init__(
+        self,
+        loader: Callable[[str], SceneData],
+        preparer: Callable[[list[str], bool], object] | None = None,
+    ):
         self._loader = loader
+        self._preparer = preparer
         self._scenes: dict[str, SceneData] = {}
 
     @classmethod
     def builtin(cls, config: SimConfig | None = None, cache_dir: Path | None = None) -> SceneLibrary:
-        from mapless.sim.cache import load_or_build
+        from mapless.sim.cache import build_missing, load_or_build
 
         config = config or SimConfig()
-        return cls(lambda name: load_or_build(name, config, cache_dir))
+        return cls(
+            lambda name: load_or_build(name, config, cache_dir),
+            lambda scenes, progress: build_missing(scenes, config, cache_dir, progress=progress),
+        )
+
+    def prepare(self, scenes: Sequence[str], progress: bool = True) -> None:
+        """Get ``scenes`` ready before work starts. The built-in library builds the missing caches
+        in parallel, with a progress bar; left to first use, a fresh machine would build them one
+        at a time, silently, minutes into a run. Other libraries have nothing to prepare."""
+        if self._preparer is not None:
+            self._preparer(list(scenes), progress)
 
     @classmethod
     def offline(cls, root: str | Path, category_set: str = "mjolnir101") -> SceneLibrary:

@@ -35,6 +35,11 @@ class BuiltinLibrary:
         return SceneLibrary.builtin(env.sim, Path(env.cache_dir) if env.cache_dir else None)
 
 
+def prepare_scenes(config: TrainConfig) -> None:
+    """Build the run's missing scene caches up front, in parallel and with a progress bar."""
+    BuiltinLibrary(config)().prepare(config.env.scene_list(), progress=config.progress)
+
+
 def target_fields(config: TrainConfig) -> TargetFields:
     """GloVe target embeddings and (for the parent reward) parent tables of the run's category set."""
     return TargetFields(config.model.category_set)

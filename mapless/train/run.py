@@ -9,7 +9,7 @@ from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
-from mapless.train.common import LibraryFactory
+from mapless.train.common import LibraryFactory, prepare_scenes
 from mapless.train.config import TrainConfig
 from mapless.train.hogwild import AsyncTrainer
 
@@ -54,6 +54,9 @@ def train(
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
             save_config(config, run_dir / ckpt.CONFIG_FILE)
+        if library_factory is None and ctx.local_rank == 0:
+            prepare_scenes(config)  # once per machine: each has its own scene cache
+        dist.barrier(ctx)
         if config.mode == "async":
             return AsyncTrainer(config, run_dir, library_factory).run(resume)
         return BatchedTrainer(config, run_dir, library_factory, ctx).run(resume)
