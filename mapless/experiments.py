@@ -190,6 +190,11 @@ def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
     log(
         f"    {stats.get('episodes', 0):.0f} episodes, {stats.get('frames', 0):.0f} frames in {stats.get('seconds', 0):.0f} s"
     )
+    if stats.get("stopped_early"):
+        # Ctrl-C stopped the run at a checkpoint: the experiment stops too, rather than evaluate and
+        # report a half-trained model as if it were the finished run.
+        log(f"  stopped early; {run_dir} is kept and the same command resumes it")
+        raise KeyboardInterrupt
     return run_dir
 
 

@@ -120,6 +120,33 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert "reusing finished run" in capsys.readouterr().out
 
 
+def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resumes(
+    workspace, monkeypatch, capsys
+):
+    from mapless.train.checkpoint import CHECKPOINT_FILE, FINAL_MODEL_FILE
+    from mapless.train.common import GracefulStop
+
+    root, config = workspace
+    reports = root / "reports"
+    command = ["reproduce", "table1", "--config", str(config), "--reports", str(reports)]
+    enter = GracefulStop.__enter__
+
+    def ctrl_c_at_once(self):  # as if Ctrl-C came during the first update
+        enter(self)
+        self.requested = True
+        return self
+
+    monkeypatch.setattr(GracefulStop, "__enter__", ctrl_c_at_once)
+    assert main(command) == 130
+    assert not (reports / "table1").exists(), "a half-trained model was evaluated and reported"
+    (run_dir,) = (root / "runs").iterdir()
+    assert (run_dir / CHECKPOINT_FILE).is_file() and not (run_dir / FINAL_MODEL_FILE).exists()
+    monkeypatch.setattr(GracefulStop, "__enter__", enter)
+    assert main(command) == 0
+    assert f"resuming {run_dir} at 8 episodes" in capsys.readouterr().out
+    assert (run_dir / FINAL_MODEL_FILE).is_file() and (reports / "table1" / "table1.md").is_file()
+
+
 def test_reproduce_table1_with_all_nine_models(workspace):
     """The paper's Table 1 lineup end to end: every trained model is selected on val and reported."""
     root, config = workspace

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -179,3 +183,55 @@ def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.Ca
 def test_shipped_training_configs_load(path: Path) -> None:
     config = load_config(TrainConfig, path)
     assert config.episodes > 0
+
+
+def _wait_for(predicate, process: subprocess.Popen, seconds: float = 180.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the trainer wrote no checkpoint in time"
+        time.sleep(0.2)
+
+
+def test_sigint_stops_at_a_checkpoint_and_sigkill_loses_only_the_work_since_the_last(tmp_path: Path) -> None:
+    """A real `mapless train` process: Ctrl-C finishes the update, checkpoints and exits 130 with the
+    resume command; SIGKILL mid-run leaves the last checkpoint whole; `--resume` then finishes."""
+    config = tmp_path / "train.yaml"
+    budget = {"model": {"name": "a3c", "hidden_size": 16}, "env": {"scenes": "FloorPlan401"},
+              "batch_size": 4, "episodes": 1_000_000, "checkpoint_every": 8, "log_every": 4,
+              "threads": 1, "progress": False}  # fmt: skip
+    config.write_text(yaml.safe_dump(budget))
+    run_dir, state = tmp_path / "run", tmp_path / "run" / ckpt.CHECKPOINT_FILE
+    command = [sys.executable, "-m", "mapless", "train"]
+    trainer = subprocess.Popen([*command, str(config), "--run-dir", str(run_dir)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)  # fmt: skip
+    _wait_for(state.exists, trainer)
+    trainer.send_signal(signal.SIGINT)
+    out, err = trainer.communicate(timeout=120)
+    assert trainer.returncode == 130, err
+    assert f"mapless train --resume {run_dir}" in err and "Traceback" not in err
+    stopped = _state(run_dir)["counters"]
+    assert json.loads(out.strip().splitlines()[-1])["episodes"] == stopped["episodes"] >= 8
+    assert stopped["episodes"] % 4 == 0  # a whole update, not part of one
+    assert not (run_dir / ckpt.FINAL_MODEL_FILE).exists()
+
+    resumed = subprocess.Popen([*command, "--resume", str(run_dir)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)  # fmt: skip
+    _wait_for(lambda: _state(run_dir)["counters"]["episodes"] >= stopped["episodes"] + 8, resumed)
+    resumed.kill()
+    resumed.communicate(timeout=60)
+    killed = _state(run_dir)["counters"]  # the last checkpoint before the kill loads whole
+    assert killed["episodes"] > stopped["episodes"]
+    records = [
+        json.loads(line)
+        for line in (run_dir / "metrics.jsonl").read_text().splitlines()
+        if line.endswith("}")
+    ]
+    # What the killed process had done past its last checkpoint is all that is lost: under one interval.
+    assert 0 <= records[-1]["episodes"] - killed["episodes"] <= 8
+
+    finish = ["--resume", str(run_dir), "--set", f"episodes={killed['episodes'] + 8}"]
+    done = subprocess.run([*command, *finish], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert _state(run_dir)["counters"]["episodes"] == killed["episodes"] + 8
+    assert (run_dir / ckpt.FINAL_MODEL_FILE).is_file()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from mapless.config import load_config
@@ -58,4 +59,11 @@ def _train(args: argparse.Namespace) -> int:
         run_dir = args.run_dir or default_run_dir(config, args.runs_root, args.config.stem)
     summary = train(config, run_dir, resume=state)
     print(json.dumps({"run_dir": str(run_dir), **{k: round(v, 3) for k, v in summary.items()}}))
+    if summary.get("stopped_early"):
+        print(
+            f"mapless: stopped at {summary['episodes']:.0f} episodes, checkpoint written; "
+            f"continue with: mapless train --resume {run_dir}",
+            file=sys.stderr,
+        )
+        return 130  # the shell's code for a run ended by SIGINT
     return 0
