@@ -62,7 +62,7 @@ def test_damaged_entries_are_detected_and_rebuilt(tmp_path, damage):
     cache.load(path, FAST)  # the rebuilt file is valid again
 
 
-def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path, monkeypatch):
+def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path):
     from mapless.sim.library import SceneLibrary
 
     cache.load_or_build(SCENE, FAST, tmp_path)
@@ -70,8 +70,10 @@ def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path, monke
     stamp = kept.stat().st_mtime_ns
     library = SceneLibrary.builtin(FAST, tmp_path)
     library.prepare([SCENE, "FloorPlan25", SCENE], progress=False)
-    assert cache.cache_path("FloorPlan25", FAST, tmp_path).exists()
+    added = cache.cache_path("FloorPlan25", FAST, tmp_path)
+    assert added.exists()
     assert kept.stat().st_mtime_ns == stamp  # the existing file was neither rebuilt nor rewritten
-    monkeypatch.setattr(cache, "build_many", lambda *a, **k: pytest.fail("nothing was missing"))
+    stamps = [kept.stat().st_mtime_ns, added.stat().st_mtime_ns]
     library.prepare([SCENE, "FloorPlan25"], progress=False)
-    assert cache.build_missing([SCENE, "FloorPlan25"], FAST, tmp_path) == []
+    assert cache.build_many([SCENE, "FloorPlan25"], FAST, tmp_path, missing_only=True) == []
+    assert [kept.stat().st_mtime_ns, added.stat().st_mtime_ns] == stamps

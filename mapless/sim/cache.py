@@ -127,12 +127,22 @@ def build_many(
     workers: int = 2,
     rebuild: bool = False,
     progress: bool = True,
+    missing_only: bool = False,
 ) -> list[Path]:
-    """Build (or verify) the cache of many scenes in ``workers`` spawned processes."""
+    """Build (or verify) the cache of many scenes in ``workers`` spawned processes.
+
+    ``missing_only`` skips the scenes that have a file without reading it: a stale or corrupt file
+    is left to :func:`load_or_build`, which rebuilds it on first use. That is rare (the fingerprint
+    is in the folder name), while a fresh machine misses every scene.
+    """
     import multiprocessing as mp
 
     from tqdm import tqdm
 
+    if missing_only:
+        scenes = [s for s in dict.fromkeys(scenes) if not cache_path(s, config, cache_dir).exists()]
+    if not scenes:
+        return []
     jobs = [(s, config, cache_dir, rebuild) for s in scenes]
     bar = tqdm(total=len(jobs), desc="building scenes", unit="scene", disable=not progress)
     paths = []
@@ -147,24 +157,6 @@ def build_many(
                 bar.update()
     bar.close()
     return paths
-
-
-def build_missing(
-    scenes: list[str],
-    config: SimConfig,
-    cache_dir: Path | None = None,
-    workers: int = 2,
-    progress: bool = True,
-) -> list[str]:
-    """Build, in parallel, the scenes that have no cache file yet; returns their names.
-
-    A stale or corrupt file is left to :func:`load_or_build`, which rebuilds it on first use: that is
-    rare (the fingerprint is in the folder name), while a fresh machine misses every scene.
-    """
-    missing = [s for s in dict.fromkeys(scenes) if not cache_path(s, config, cache_dir).exists()]
-    if missing:
-        build_many(missing, config, cache_dir, workers=workers, progress=progress)
-    return missing
 
 
 def _build_job(job: tuple) -> Path:

@@ -27,12 +27,14 @@ class SceneLibrary:
 
     @classmethod
     def builtin(cls, config: SimConfig | None = None, cache_dir: Path | None = None) -> SceneLibrary:
-        from mapless.sim.cache import build_missing, load_or_build
+        from mapless.sim.cache import build_many, load_or_build
 
         config = config or SimConfig()
         return cls(
             lambda name: load_or_build(name, config, cache_dir),
-            lambda scenes, progress: build_missing(scenes, config, cache_dir, progress=progress),
+            lambda scenes, progress: build_many(
+                scenes, config, cache_dir, progress=progress, missing_only=True
+            ),
         )
 
     def prepare(self, scenes: Sequence[str], progress: bool = True) -> None:
