@@ -472,7 +472,7 @@ def evaluate(
     library = library or LibrarySpec()
     episodes = list(episodes)
     scenes = sorted({e.scene for e in episodes})
-    library.build().prepare(scenes, progress=progress is not None)
+    library.build().prepare(scenes)  # a bar only when some scene has to be built
     workers = max(1, min(settings.workers, len(scenes)))
     shares = partition(episodes, workers)
     jobs = [(agent, library, [episodes[i] for i in share], share, settings, 1) for share in shares]
