@@ -127,8 +127,10 @@ def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resume
     from mapless.train.common import GracefulStop
 
     root, config = workspace
-    reports = root / "reports"
+    # Runs and reports of its own: the module's other tests leave finished runs to reuse.
+    runs, reports = root / "interrupted_runs", root / "interrupted_reports"
     command = ["reproduce", "table1", "--config", str(config), "--reports", str(reports)]
+    command += ["--set", f"runs_dir={runs}"]
     enter = GracefulStop.__enter__
 
     def ctrl_c_at_once(self):  # as if Ctrl-C came during the first update
@@ -139,7 +141,7 @@ def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resume
     monkeypatch.setattr(GracefulStop, "__enter__", ctrl_c_at_once)
     assert main(command) == 130
     assert not (reports / "table1").exists(), "a half-trained model was evaluated and reported"
-    (run_dir,) = (root / "runs").iterdir()
+    (run_dir,) = runs.iterdir()
     assert (run_dir / CHECKPOINT_FILE).is_file() and not (run_dir / FINAL_MODEL_FILE).exists()
     monkeypatch.setattr(GracefulStop, "__enter__", enter)
     assert main(command) == 0
