@@ -171,13 +171,60 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
 
 
+def planned_runs(config: ExperimentConfig) -> int:
+    """How many training runs an experiment goes through (finished ones are reused, not retrained)."""
+    if config.experiment == "table3":  # the focus model, then without one room type at a time
+        return (1 + len(config.rooms)) * config.seeds
+    trained = sum(model != "random" for model in config.models)
+    per_model = len(config.rooms) if config.experiment == "table2" else 1
+    return trained * per_model * config.seeds
+
+
+@dataclass
+class RunTally:
+    """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
+    the time left: the mean wall time (training and evaluation) of the runs this process trained,
+    times the runs left. Reused runs take seconds, so while some are left it is an upper bound."""
+
+    total: int
+    log: Callable[[str], None]
+    done: int = 0
+    trained_seconds: list[float] = field(default_factory=list)
+    _started: float = 0.0
+
+    def start(self, what: str) -> None:
+        left = ""
+        if self.trained_seconds:
+            each = sum(self.trained_seconds) / len(self.trained_seconds)
+            left = f"; about {_duration(each * (self.total - self.done))} left ({_duration(each)} per trained run)"
+        self.log(f"[run {self.done + 1} of {self.total}] {what}{left}")
+        self._started = time.perf_counter()
+
+    def finish(self, trained: bool) -> None:
+        self.done += 1
+        if trained:
+            self.trained_seconds.append(time.perf_counter() - self._started)
+
+
+def _duration(seconds: float) -> str:
+    minutes = round(seconds / 60)
+    return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
+
+
+def is_finished(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds a finished run (its final model)."""
+    from mapless.train.checkpoint import FINAL_MODEL_FILE
+
+    return (run_dir / FINAL_MODEL_FILE).is_file()
+
+
 def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
     """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
     (a resumable checkpoint but no final model) is resumed."""
     from mapless.train import checkpoint as ckpt
     from mapless.train.run import train
 
-    if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():
+    if is_finished(run_dir):
         log(f"  reusing finished run {run_dir}")
         return run_dir
     resume = None
@@ -265,7 +312,7 @@ class Evaluator:
         return run.results, {"steps_per_second": run.steps_per_second}
 
 
-def _model_results(config: ExperimentConfig, ev: Evaluator, model: str, variant: str = "all",
+def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, variant: str = "all",
                    extra: dict | None = None, log: Callable[[str], None] = print) -> tuple[list[list[EpisodeResult]], list[dict]]:  # fmt: skip
     """Per-seed report results of one model (trained per seed, or untrained for ``random``)."""
     per_seed, meta = [], []
@@ -274,8 +321,12 @@ def _model_results(config: ExperimentConfig, ev: Evaluator, model: str, variant:
         return [results], [info]
     for s in range(config.seeds):
         cfg = train_config(config, model, seed=1 + s, extra=extra)
-        run_dir = train_run(cfg, run_dir_for(config, cfg, variant), log)
+        run_dir = run_dir_for(config, cfg, variant)
+        reused = is_finished(run_dir)
+        tally.start(f"{model} {variant}, seed {1 + s}")
+        train_run(cfg, run_dir, log)
         results, info = ev.trained(run_dir, cfg)
+        tally.finish(trained=not reused)
         per_seed.append(results)
         meta.append({"run_dir": str(run_dir), **info})
     return per_seed, meta
@@ -294,11 +345,11 @@ def _header(config: ExperimentConfig, title: str, ev: Evaluator, command: str) -
 
 
 def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
-    ev = Evaluator(config, log)
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     records, results = [], {}
     for model in config.models:
         log(f"{model}:")
-        per_seed, meta = _model_results(config, ev, model, log=log)
+        per_seed, meta = _model_results(config, ev, tally, model, log=log)
         records.append(model_record(model, per_seed, {"runs": meta, "protocol": config.eval.protocol}))
         results[model] = per_seed
     lines = _header(config, "Table 1: navigation results on unseen scenes", ev, command)
@@ -317,7 +368,7 @@ def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
 
 def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
     """Rows: model x training room type; columns: SR / SPL on each test room type and overall."""
-    ev = Evaluator(config, log)
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     rows, records = [], []
     header = [
         "model",
@@ -329,7 +380,9 @@ def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         for room in config.rooms:
             log(f"{model}, {ROOM_ABBREV[room]}-single:")
             extra = {"env": {"scenes": config.single_room_scenes.get(room, f"train:{room}")}}
-            per_seed, meta = _model_results(config, ev, model, f"{ROOM_ABBREV[room]}-single", extra, log)
+            per_seed, meta = _model_results(
+                config, ev, tally, model, f"{ROOM_ABBREV[room]}-single", extra, log
+            )
             rec = model_record(
                 f"{model} {ROOM_ABBREV[room]}-single",
                 per_seed,
@@ -370,7 +423,7 @@ def _pair(estimates: dict | None) -> str:
 
 def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
     """The focus model with every room's relationships, then without those of one room type."""
-    ev = Evaluator(config, log)
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     variants = [("full", None)] + [(room, tuple(r for r in ROOM_TYPES if r != room)) for room in config.rooms]
     records = []
     for name, rooms in variants:
@@ -383,7 +436,7 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         )
         # The unablated model is Table 1's run (variant "all", same configuration): trained once.
         per_seed, meta = _model_results(
-            config, ev, config.focus, "all" if rooms is None else f"no-{name}", extra, log
+            config, ev, tally, config.focus, "all" if rooms is None else f"no-{name}", extra, log
         )
         rec = model_record(
             label,

@@ -16,7 +16,7 @@ import pytest
 from mapless.cli import main
 from mapless.episodes import evalsets
 from mapless.episodes.episode import Episode
-from mapless.experiments import load_experiment, run_dir_for, train_config
+from mapless.experiments import RunTally, load_experiment, planned_runs, run_dir_for, train_config
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
@@ -93,6 +93,7 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     root, config = workspace
     reports = root / "reports"
     assert main(["reproduce", "table1", "--config", str(config), "--reports", str(reports)]) == 0
+    assert "[run 1 of 1] a3c all, seed 1" in capsys.readouterr().out  # random is not trained
     md = (reports / "table1" / "table1.md").read_text()
     assert "| random |" in md and "| a3c |" in md and "SR L≥5" in md
     payload = json.loads((reports / "table1" / "table1.json").read_text())
@@ -242,3 +243,33 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
             == 0
         )
         assert (root / "sel" / "test.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "experiment, seeds, runs",
+    [
+        ("table1", 3, 6),  # a3c and cvmeta (random is not trained) x 3 seeds
+        ("table2", 2, 16),  # cvmeta and mjolnir_o x 4 training room types x 2 seeds
+        ("table3", 2, 10),  # the full model and 4 ablations x 2 seeds
+        ("figure3", 1, 2),  # Table 1's runs
+    ],
+)
+def test_planned_runs_of_the_shipped_small_configs(experiment, seeds, runs):
+    assert planned_runs(load_experiment(experiment, "small", seeds=seeds)) == runs
+
+
+def test_run_tally_estimates_the_time_left_from_the_runs_it_trained(monkeypatch):
+    clock = iter([0.0, 600.0, 600.0, 605.0, 605.0])  # a run trained in 10 min, then one reused in 5 s
+    monkeypatch.setattr("mapless.experiments.time.perf_counter", lambda: next(clock))
+    lines: list[str] = []
+    tally = RunTally(total=4, log=lines.append)
+    tally.start("cvmeta all, seed 1")
+    tally.finish(trained=True)
+    tally.start("cvmeta all, seed 2")
+    tally.finish(trained=False)
+    tally.start("cvmeta no-kitchen, seed 1")
+    assert lines == [
+        "[run 1 of 4] cvmeta all, seed 1",
+        "[run 2 of 4] cvmeta all, seed 2; about 30 min left (10 min per trained run)",
+        "[run 3 of 4] cvmeta no-kitchen, seed 1; about 20 min left (10 min per trained run)",
+    ]
