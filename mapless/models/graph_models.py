@@ -21,6 +21,7 @@ from mapless.models.base import (
     RecurrentNavModel,
     gcn_layer,
     normalized_adjacency_parameter,
+    normalized_column_init,
     shared_gcn_term,
     shared_row_gcn_layer,
 )
@@ -96,8 +97,6 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
         )
         self._finish_init(BASE_EMBEDDING)
         # Replace the critic by one over [h || g]; SAVN's critic init (normalised columns, std 1.0).
-        from mapless.models.base import normalized_column_init
-
         self.critic_linear = nn.Linear(self.hidden_size + GRAPH_EMBEDDING, 1)
         normalized_column_init(self.critic_linear, 1.0)
         self._build_learned_loss(with_key_linear=True)
