@@ -211,22 +211,15 @@ def _duration(seconds: float) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
 
 
-def is_finished(run_dir: Path) -> bool:
-    """Whether ``run_dir`` holds a finished run (its final model)."""
-    from mapless.train.checkpoint import FINAL_MODEL_FILE
-
-    return (run_dir / FINAL_MODEL_FILE).is_file()
-
-
-def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
+def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> bool:
     """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
-    (a resumable checkpoint but no final model) is resumed."""
+    (a resumable checkpoint but no final model) is resumed. Returns whether it trained."""
     from mapless.train import checkpoint as ckpt
     from mapless.train.run import train
 
-    if is_finished(run_dir):
+    if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():
         log(f"  reusing finished run {run_dir}")
-        return run_dir
+        return False
     resume = None
     if (run_dir / ckpt.CHECKPOINT_FILE).is_file():
         resume = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
@@ -242,7 +235,7 @@ def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> Path:
         # report a half-trained model as if it were the finished run.
         log(f"  stopped early; {run_dir} is kept and the same command resumes it")
         raise KeyboardInterrupt
-    return run_dir
+    return True
 
 
 # -- evaluation --------------------------------------------------------------------------------------
@@ -322,11 +315,10 @@ def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, mod
     for s in range(config.seeds):
         cfg = train_config(config, model, seed=1 + s, extra=extra)
         run_dir = run_dir_for(config, cfg, variant)
-        reused = is_finished(run_dir)
         tally.start(f"{model} {variant}, seed {1 + s}")
-        train_run(cfg, run_dir, log)
+        trained = train_run(cfg, run_dir, log)
         results, info = ev.trained(run_dir, cfg)
-        tally.finish(trained=not reused)
+        tally.finish(trained)
         per_seed.append(results)
         meta.append({"run_dir": str(run_dir), **info})
     return per_seed, meta
