@@ -34,8 +34,12 @@ from mapless.config import ConfigError, apply_overrides, from_dict, load_config,
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.report import (
+    COLUMNS,
+    MAIN_COLUMNS,
     ROOM_NAMES,
     details_table,
+    difference_record,
+    format_difference,
     format_estimate,
     markdown,
     model_record,
@@ -344,18 +348,36 @@ def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         per_seed, meta = _model_results(config, ev, tally, model, log=log)
         records.append(model_record(model, per_seed, {"runs": meta, "protocol": config.eval.protocol}))
         results[model] = per_seed
+    if config.focus in results:
+        for rec in records:
+            if rec["model"] != config.focus:
+                rec["focus_minus_model"] = difference_record(results[rec["model"]], results[config.focus])
     lines = _header(config, "Table 1: navigation results on unseen scenes", ev, command)
-    lines += [
-        model_table(records),
-        "",
-        "Secondary metrics (mean over seeds):",
-        "",
-        details_table(records),
-        "",
-    ]
+    lines += [model_table(records), "", *_focus_differences(config.focus, records)]
+    lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     for rec in records:
         lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
     return {**_finish(config, ev, out, lines, models=records), "results": results}
+
+
+def _focus_differences(focus: str, records: list[dict]) -> list[str]:
+    """Table 1's comparison of the focus model with each other model, if it has one."""
+    key = "focus_minus_model"
+    rows = [
+        [rec["model"], *(format_difference(c, rec[key][c]) for c in MAIN_COLUMNS)]
+        for rec in records
+        if key in rec
+    ]
+    if not rows:
+        return []
+    header = ["model", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    return [
+        f"{focus} minus each model, in points, with the 95 % interval of the difference over episodes "
+        "(paired: the same episodes) and each model's training seeds:",
+        "",
+        markdown(header, rows),
+        "",
+    ]
 
 
 def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
@@ -417,7 +439,7 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
     """The focus model with every room's relationships, then without those of one room type."""
     ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     variants = [("full", None)] + [(room, tuple(r for r in ROOM_TYPES if r != room)) for room in config.rooms]
-    records = []
+    records, full = [], None
     for name, rooms in variants:
         label = config.focus if rooms is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
         log(f"{label}:")
@@ -436,6 +458,13 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
             {"runs": meta, "removed_room": None if rooms is None else name},
             keep_episodes=False,
         )
+        if rooms is None:
+            full = per_seed
+        else:
+            rec["minus_full"] = {
+                "all": difference_record(full, per_seed),
+                name: difference_record(full, per_seed, name),
+            }
         records.append(rec)
     header = ["model", *(f"{ROOM_NAMES[r]} SR / SPL" for r in config.eval.rooms), "All SR / SPL"]
     rows = [
@@ -450,8 +479,25 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         "",
         model_table(records),
         "",
+        "Each ablation minus the full model, in points, with the 95 % interval of the difference over "
+        "episodes (paired: the same episodes) and both runs' training seeds; the paper's claim is a "
+        "drop, largest on the room type whose relationships were removed:",
+        "",
+        markdown(
+            ["model", "Δ SR", "Δ SPL", "Δ SR, its room type", "Δ SPL, its room type"],
+            [
+                [rec["model"], *_ablation_cells(rec["minus_full"], rec["removed_room"])]
+                for rec in records
+                if "minus_full" in rec
+            ],
+        ),
+        "",
     ]
     return _finish(config, ev, out, lines, models=records)
+
+
+def _ablation_cells(minus_full: dict, room: str) -> list[str]:
+    return [format_difference(c, minus_full[part][c]) for part in ("all", room) for c in ("success", "spl")]
 
 
 def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:

@@ -98,6 +98,13 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert "| random |" in md and "| a3c |" in md and "SR L≥5" in md
     payload = json.loads((reports / "table1" / "table1.json").read_text())
     a3c = next(m for m in payload["models"] if m["model"] == "a3c")
+    # The focus model (a3c here) minus each other model, on the same episodes.
+    random = next(m for m in payload["models"] if m["model"] == "random")
+    minus = random["focus_minus_model"]["success"]
+    assert minus["mean"] == pytest.approx(
+        a3c["estimates"]["success"]["mean"] - random["estimates"]["success"]["mean"]
+    )
+    assert minus["ci_low"] <= minus["mean"] <= minus["ci_high"] and "a3c minus each model" in md
     selection = a3c["runs"][0]["selection"]
     # Snapshots at 8 and 16 episodes (the final model is the 16-episode snapshot): both scored on val.
     assert [c["episodes"] for c in selection["candidates"]] == [8, 16]
@@ -203,6 +210,12 @@ def test_reproduce_table2_and_table3(workspace):
     payload = json.loads((reports / "table3" / "table3.json").read_text())
     labels = [m["model"] for m in payload["models"]]
     assert labels == ["a3c", "Kitchen_no_relationships"]
+    full, ablated = payload["models"]
+    kitchen = ablated["minus_full"]["kitchen"]["success"]
+    assert kitchen["mean"] == pytest.approx(
+        ablated["rooms"]["kitchen"]["success"]["mean"] - full["rooms"]["kitchen"]["success"]["mean"]
+    )
+    assert "Δ SR, its room type" in (reports / "table3" / "table3.md").read_text()
     run_dirs = [m["runs"][0]["run_dir"] for m in payload["models"]]
     assert "__no-kitchen__" in run_dirs[1] and run_dirs[0] != run_dirs[1]
     # The unablated model is Table 1's run of the same configuration (trained once for both).

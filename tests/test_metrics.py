@@ -19,7 +19,7 @@ from mapless.evaluate.metrics import (
     summarize,
 )
 from mapless.evaluate.report import format_estimate, model_record, model_table
-from mapless.evaluate.stats import bootstrap_ci, mean_std, seed_estimates
+from mapless.evaluate.stats import bootstrap_ci, difference_estimates, mean_std, seed_estimates
 
 
 def ep(index, success, length, optimal, done=True, failed=0, poses=None, room="kitchen") -> EpisodeResult:
@@ -119,6 +119,33 @@ def test_seed_estimates_mean_std_over_seeds():
     assert est["success"].ci_low <= 0.35 <= est["success"].ci_high
     with pytest.raises(ValueError):
         seed_estimates([seed_a, seed_b[:5]])
+
+
+def test_difference_of_two_models_is_paired_over_episodes():
+    # B succeeds wherever A does, and on 40 more of the 400 episodes: a difference of exactly 0.1.
+    a = [ep(i, i % 2 == 0, 4, 4) for i in range(400)]
+    b = [ep(i, i % 2 == 0 or i % 10 == 1, 4, 4) for i in range(400)]
+    diff = difference_estimates([a], [b])["success"]
+    assert diff.mean == pytest.approx(0.1) and diff.episodes == 400
+    # Paired, the resampled difference is the mean of 400 per-episode differences of which 40 are 1:
+    # binomial, half-width 1.96 * sqrt(0.1 * 0.9 / 400) = 0.029 (unpaired it would be ~0.069).
+    assert (diff.ci_high - diff.ci_low) / 2 == pytest.approx(1.96 * math.sqrt(0.1 * 0.9 / 400), rel=0.15)
+    assert diff.ci_low > 0.05
+    assert difference_estimates([a], [b])["success"] == diff  # seeded
+    with pytest.raises(ValueError):
+        difference_estimates([a], [b[:200]])
+
+
+def test_difference_interval_carries_the_spread_over_seeds():
+    # Two identical models whose two seeds score 0.2 and 0.6: no difference on average, but drawing
+    # seeds can pit A's 0.2 against B's 0.6 (probability 1/16 each way), so the interval reaches ±0.4.
+    seeds = [[ep(i, i % 5 == 0, 4, 4) for i in range(100)], [ep(i, i % 5 < 3, 4, 4) for i in range(100)]]
+    diff = difference_estimates(seeds, seeds)["success"]
+    assert diff.mean == pytest.approx(0.0) and diff.seeds_a == diff.seeds_b == 2
+    assert diff.ci_low < -0.3 and diff.ci_high > 0.3
+    # One seed each: only the episodes vary, and identical results differ by exactly nothing.
+    same = difference_estimates(seeds[:1], seeds[:1])["success"]
+    assert (same.ci_low, same.mean, same.ci_high) == (0.0, 0.0, 0.0)
 
 
 def test_episodes_stored_without_poses_are_left_out_of_the_exploration_ratio_everywhere():

@@ -2,7 +2,8 @@
 
 Rates (SR, SPL, Done, failed actions, exploration) are shown in percent, as the papers do; episode
 length in steps. A cell is ``mean`` for one seed and ``mean ± std`` over seeds, followed by the 95 %
-bootstrap interval over episodes in brackets (mapless.evaluate.stats).
+bootstrap interval over episodes in brackets (mapless.evaluate.stats). A difference between two
+models is a signed ``+6.3 [+2.1, +10.5]``, in points for rates, its interval over episodes and seeds.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from mapless.evaluate.metrics import EpisodeResult, summarize
-from mapless.evaluate.stats import Estimate, seed_estimates
+from mapless.evaluate.stats import Difference, Estimate, difference_estimates, seed_estimates
 from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
 
@@ -56,6 +57,32 @@ def format_estimate(key: str, estimate: Estimate | dict, interval: bool = True) 
     return text
 
 
+def format_difference(key: str, difference: Difference | dict) -> str:
+    """``-7.0 [-11.2, -2.9]``: a signed difference and its 95 % interval (points for rates)."""
+    d = difference if isinstance(difference, dict) else difference.to_dict()
+    if d["mean"] is None or math.isnan(d["mean"]):
+        return "–"
+    s = _scale(key)
+    return f"{d['mean'] * s:+.1f} [{d['ci_low'] * s:+.1f}, {d['ci_high'] * s:+.1f}]"
+
+
+def difference_record(
+    per_seed_a: Sequence[Sequence[EpisodeResult]],
+    per_seed_b: Sequence[Sequence[EpisodeResult]],
+    room: str | None = None,
+) -> dict[str, dict]:
+    """JSON-able :func:`~mapless.evaluate.stats.difference_estimates` of B minus A, over all
+    episodes or those of one room type."""
+    if room is not None:
+        per_seed_a, per_seed_b = room_results(per_seed_a, room), room_results(per_seed_b, room)
+    return {k: v.to_dict() for k, v in difference_estimates(per_seed_a, per_seed_b).items()}
+
+
+def room_results(per_seed: Sequence[Sequence[EpisodeResult]], room: str) -> list[list[EpisodeResult]]:
+    """Each seed's results on the episodes of one room type."""
+    return [[r for r in results if r.room_type == room] for results in per_seed]
+
+
 def format_value(key: str, value: float) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–"
@@ -93,7 +120,7 @@ def model_record(
 def _room_estimates(per_seed: Sequence[Sequence[EpisodeResult]]) -> dict[str, dict]:
     out = {}
     for room in ROOM_TYPES:
-        subsets = [[r for r in results if r.room_type == room] for results in per_seed]
+        subsets = room_results(per_seed, room)
         if subsets and all(subsets):
             out[room] = {k: v.to_dict() for k, v in seed_estimates(subsets).items()}
     return out

@@ -5,6 +5,12 @@ across seeds. The interval resamples *episodes* (jointly across seeds: an episod
 for every seed), applying the metric to each resample and averaging over seeds, which is the
 uncertainty due to the finite episode set. The std over seeds is the training-run spread that SAVN's
 README reports (5 runs). Percentile bootstrap, 2,000 resamples, seeded, so tables are reproducible.
+
+Two models on the same episode set are compared by :func:`difference_estimates`: the difference of
+their means over seeds, with an interval whose resamples draw episodes (shared by the two models:
+a paired comparison) and, independently for each model, its seeds. Seed-to-seed spread is the larger
+source of uncertainty at small budgets, so an interval over episodes alone would overstate what a
+difference shows; with two or three seeds the seeds' part is itself rough (too narrow, if anything).
 """
 
 from __future__ import annotations
@@ -82,24 +88,99 @@ def seed_estimates(per_seed: Sequence[Sequence[EpisodeResult]], seed: int = 0) -
     Episodes are matched by ``index`` across seeds; a seed whose episode list differs is an error
     (it would make the joint resampling meaningless).
     """
-    if not per_seed:
-        raise ValueError("seed_estimates needs at least one seed's results")
-    ordered = [sorted(results, key=lambda r: r.index) for results in per_seed]
-    keys = [r.index for r in ordered[0]]
-    for results in ordered[1:]:
-        if [r.index for r in results] != keys:
-            raise ValueError("all seeds must be evaluated on the same episodes")
-    columns = [episode_values(results) for results in ordered]
+    keys, columns = _aligned_columns(per_seed)
     out: dict[str, Estimate] = {}
-    for name, (column, l5_only) in CI_METRICS.items():
-        mask = columns[0]["l5"] if l5_only else np.ones(len(keys), dtype=bool)
-        if column == "exploration":
-            # An episode stored without its poses has no known ratio: left out, as aggregate() and
-            # the exploration curve leave it out (counted as 0 it would pull the estimate down).
-            mask = mask & np.all([np.isfinite(c[column]) for c in columns], axis=0)
+    for name, (column, _) in CI_METRICS.items():
+        mask = _metric_mask(name, columns, len(keys))
         matrix = np.stack([c[column][mask] for c in columns])
         per_seed_values = matrix.mean(axis=1) if matrix.shape[1] else np.full(len(columns), np.nan)
         mean, std = mean_std(per_seed_values)
         low, high = bootstrap_ci(matrix, seed=seed)
         out[name] = Estimate(mean, std, low, high, seeds=len(columns), episodes=int(mask.sum()))
     return out
+
+
+@dataclass(frozen=True)
+class Difference:
+    """``B - A`` of a metric: the difference of the two models' means over seeds, and its 95 %
+    bootstrap interval over episodes (paired) and each model's seeds."""
+
+    mean: float
+    ci_low: float
+    ci_high: float
+    seeds_a: int
+    seeds_b: int
+    episodes: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def difference_estimates(
+    per_seed_a: Sequence[Sequence[EpisodeResult]],
+    per_seed_b: Sequence[Sequence[EpisodeResult]],
+    metrics: Sequence[str] = ("success", "spl", "l5_success", "l5_spl"),
+    seed: int = 0,
+) -> dict[str, Difference]:
+    """Model B minus model A on the same episode set (matched by ``index``; other sets are an error)."""
+    keys, columns_a = _aligned_columns(per_seed_a)
+    keys_b, columns_b = _aligned_columns(per_seed_b)
+    if keys_b != keys:
+        raise ValueError("both models must be evaluated on the same episodes")
+    out: dict[str, Difference] = {}
+    for name in metrics:
+        column = CI_METRICS[name][0]
+        mask = _metric_mask(name, [*columns_a, *columns_b], len(keys))
+        a = np.stack([c[column][mask] for c in columns_a])
+        b = np.stack([c[column][mask] for c in columns_b])
+        if not mask.any():
+            out[name] = Difference(float("nan"), float("nan"), float("nan"), len(a), len(b), 0)
+            continue
+        # Each metric draws the same resamples (as bootstrap_ci does), whatever the others are.
+        resampled = _paired_seed_bootstrap(a, b, np.random.default_rng(seed))
+        alpha = (1.0 - CONFIDENCE) / 2.0
+        low, high = np.quantile(resampled, [alpha, 1.0 - alpha])
+        diff = float(b.mean() - a.mean())  # every seed has the same episodes: mean of seed means
+        out[name] = Difference(diff, float(low), float(high), len(a), len(b), int(mask.sum()))
+    return out
+
+
+def _paired_seed_bootstrap(a: np.ndarray, b: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``N_BOOTSTRAP`` resampled values of ``mean(b) - mean(a)`` (``[seeds, episodes]`` each): each
+    resample draws the episodes once for both models, and each model's seeds with replacement."""
+    n = a.shape[1]
+    out = np.empty(N_BOOTSTRAP)
+    chunk = max(1, 2_000_000 // n)  # bounds the [resamples, episodes] arrays, as bootstrap_ci does
+    for start in range(0, N_BOOTSTRAP, chunk):
+        k = min(N_BOOTSTRAP, start + chunk) - start
+        weights_a = rng.multinomial(len(a), np.full(len(a), 1.0 / len(a)), size=k) / len(a)
+        weights_b = rng.multinomial(len(b), np.full(len(b), 1.0 / len(b)), size=k) / len(b)
+        per_episode = weights_b @ b - weights_a @ a  # [k, episodes]: each resample's seed mix
+        episodes = rng.integers(0, n, size=(k, n))
+        out[start : start + k] = np.take_along_axis(per_episode, episodes, axis=1).mean(axis=1)
+    return out
+
+
+def _aligned_columns(
+    per_seed: Sequence[Sequence[EpisodeResult]],
+) -> tuple[list[int], list[dict[str, np.ndarray]]]:
+    """Episode indices and each seed's per-episode arrays, in index order; the seeds must agree."""
+    if not per_seed:
+        raise ValueError("estimates need at least one seed's results")
+    ordered = [sorted(results, key=lambda r: r.index) for results in per_seed]
+    keys = [r.index for r in ordered[0]]
+    for results in ordered[1:]:
+        if [r.index for r in results] != keys:
+            raise ValueError("all seeds must be evaluated on the same episodes")
+    return keys, [episode_values(results) for results in ordered]
+
+
+def _metric_mask(name: str, columns: Sequence[dict[str, np.ndarray]], n: int) -> np.ndarray:
+    """The episodes a metric is taken over: the L>=5 bucket for ``l5_*``, and for the exploration
+    ratio only episodes whose poses every seed stored (an episode without them has no known ratio:
+    aggregate() and the exploration curve leave it out too, where 0 would pull the estimate down)."""
+    column, l5_only = CI_METRICS[name]
+    mask = columns[0]["l5"] if l5_only else np.ones(n, dtype=bool)
+    if column == "exploration":
+        mask = mask & np.all([np.isfinite(c[column]) for c in columns], axis=0)
+    return mask
