@@ -18,7 +18,7 @@ from mapless.evaluate.metrics import (
     spl,
     summarize,
 )
-from mapless.evaluate.report import format_estimate, model_record, model_table
+from mapless.evaluate.report import format_difference, format_estimate, model_record, model_table
 from mapless.evaluate.stats import bootstrap_ci, difference_estimates, mean_std, seed_estimates
 
 
@@ -169,3 +169,11 @@ def test_report_cells_and_table():
     assert cell.startswith("75.0 [")  # one seed: no ±
     table = model_table([record])
     assert "| cvmeta | 75.0" in table and "SR L≥5" in table
+
+
+def test_difference_cells_are_signed_points_for_rates_and_steps_for_lengths():
+    rate = {"mean": -0.07, "ci_low": -0.112, "ci_high": 0.0291, "seeds_a": 3, "seeds_b": 3, "episodes": 400}
+    assert format_difference("success", rate) == "-7.0 [-11.2, +2.9]"
+    length = {**rate, "mean": 1.5, "ci_low": 0.5, "ci_high": 2.5}
+    assert format_difference("ep_length", length) == "+1.5 [+0.5, +2.5]"
+    assert format_difference("spl", {**rate, "mean": float("nan")}) == "–"
