@@ -119,6 +119,31 @@ def test_checkpoint_files_are_plain_data(tmp_path: Path) -> None:
         resume_config(tmp_path / "missing")
 
 
+@pytest.mark.parametrize(("every", "snapshots"), [(8, [8]), (16, [])])
+def test_ctrl_c_checkpoints_but_adds_no_snapshot_off_the_schedule(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, every: int, snapshots: list[int]
+) -> None:
+    """Selection picks among the snapshots, so a run stopped and resumed must offer the ones a
+    straight run offers: a stop writes one only where its update crossed the schedule."""
+    from mapless.train.common import GracefulStop
+
+    enter = GracefulStop.__enter__
+
+    def ctrl_c_at_once(self):  # as if Ctrl-C came during the first update
+        enter(self)
+        self.requested = True
+        return self
+
+    config = tiny_config("a3c", "episodes=16", "batch_size=8", f"checkpoint_every={every}")
+    monkeypatch.setattr(GracefulStop, "__enter__", ctrl_c_at_once)
+    assert train(config, tmp_path, library_factory=fixture_library)["stopped_early"]
+    assert _state(tmp_path)["counters"]["episodes"] == 8
+    assert [n for n, _ in ckpt.snapshots(tmp_path)] == snapshots
+    monkeypatch.setattr(GracefulStop, "__enter__", enter)
+    train(config, tmp_path, resume=_state(tmp_path), library_factory=fixture_library)
+    assert [n for n, _ in ckpt.snapshots(tmp_path)] == [*snapshots, 16]
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [

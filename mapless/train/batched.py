@@ -64,6 +64,7 @@ class BatchedTrainer:
         self.device = dist.rank_device(config.device, self.ctx.local_rank)
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self._clock, self._out_of_time = time.perf_counter(), False
+        self._snapshot_due = False  # the last update crossed a checkpoint_every boundary
 
     # -- setup -----------------------------------------------------------------------------------
     def _setup(self, resume: dict | None) -> None:
@@ -122,7 +123,7 @@ class BatchedTrainer:
             self.rng = np.random.default_rng(seed_for(self.config, 30_001, *streams))
 
     # -- checkpoints -----------------------------------------------------------------------------
-    def _checkpoint(self, final: bool = False) -> None:
+    def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
         rngs = dist.gather_objects(self._rng_state(), self.ctx)  # collective: every rank calls it
         if self.run_dir is None:
             return
@@ -135,6 +136,7 @@ class BatchedTrainer:
             rngs,
             self.ctx.world_size,
             final,
+            snapshot,
         )
 
     # -- loop ------------------------------------------------------------------------------------
@@ -180,7 +182,8 @@ class BatchedTrainer:
                     if stopped:
                         break
             loop_end = time.perf_counter()
-            self._checkpoint(final=not stopped)
+            # A stop writes a snapshot only where the schedule puts one (its update crossed it).
+            self._checkpoint(final=not stopped, snapshot=not stopped or self._snapshot_due)
         finally:
             monitor.close()
         return run_summary(
@@ -225,10 +228,11 @@ class BatchedTrainer:
             count=episodes,
         )
         monitor.advance(self.counters["episodes"], self.counters["frames"])
+        every = self.config.checkpoint_every
+        self._snapshot_due = self.counters["episodes"] // every > before // every
         if totals[6] > 0:
             return True
         self._out_of_time = bool(totals[7] > 0)
-        every = self.config.checkpoint_every
-        if self.counters["episodes"] // every > before // every and not self._budget_reached():
+        if self._snapshot_due and not self._budget_reached():
             self._checkpoint()
         return False

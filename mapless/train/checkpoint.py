@@ -80,9 +80,14 @@ def save_run_state(
     rngs: list,
     world_size: int,
     final: bool,
+    snapshot: bool = True,
 ) -> None:
     """Everything a trainer writes at a checkpoint: the resumable state (:data:`CHECKPOINT_FILE`), a
-    model snapshot and, at the end of the budget, the final model.
+    model snapshot (unless ``snapshot`` is False) and, at the end of the budget, the final model.
+
+    Snapshots are what checkpoint selection chooses from, so they follow the ``checkpoint_every``
+    schedule alone: a run stopped by Ctrl-C between two of them writes only the resumable state, and
+    once resumed it offers the same candidates as a run that was never stopped.
 
     Weights and optimizer moments are copied once, up front, and every file is written from the
     copies: Hogwild workers keep updating the shared tensors while the files are written, and the
@@ -99,7 +104,8 @@ def save_run_state(
     }
     atomic_save(state, Path(run_dir) / CHECKPOINT_FILE)
     model_file = model_payload(weights, config, counters)
-    atomic_save(model_file, Path(run_dir) / SNAPSHOT_DIR / f"model_{counters['episodes']:010d}.pt")
+    if snapshot or final:
+        atomic_save(model_file, Path(run_dir) / SNAPSHOT_DIR / f"model_{counters['episodes']:010d}.pt")
     if final:
         atomic_save(model_file, Path(run_dir) / FINAL_MODEL_FILE)
 

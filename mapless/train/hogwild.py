@@ -147,11 +147,11 @@ class AsyncTrainer:
         self._clock = time.perf_counter()
 
     # -- checkpoints -----------------------------------------------------------------------------
-    def _checkpoint(self, final: bool = False) -> None:
+    def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
         if self.run_dir is None:
             return
         ckpt.save_run_state(
-            self.run_dir, self.model, self.optimizer, self.config, self.counters, [], 1, final
+            self.run_dir, self.model, self.optimizer, self.config, self.counters, [], 1, final, snapshot
         )
 
     def _budget_reached(self) -> bool:
@@ -279,7 +279,8 @@ class AsyncTrainer:
                     self._check_workers()
             loop_end = time.perf_counter()
             self._stop_workers()
-            self._checkpoint(final=not stopped)
+            # Scheduled snapshots are written as episodes are counted; a stop adds none.
+            self._checkpoint(final=not stopped, snapshot=not stopped)
         finally:
             self._stop_workers()
             monitor.close()
