@@ -187,27 +187,29 @@ def planned_runs(config: ExperimentConfig) -> int:
 @dataclass
 class RunTally:
     """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
-    the time left: the mean wall time (training and evaluation) of the runs this process trained,
-    times the runs left. Reused runs take seconds, so while some are left it is an upper bound."""
+    the time left: the mean wall time of a whole run (training and evaluation) over the runs this
+    process trained, a resumed run's time scaled up by the share of its episodes trained here, times
+    the runs left. Reused runs take seconds, so while some are left it is an upper bound."""
 
     total: int
     log: Callable[[str], None]
     done: int = 0
-    trained_seconds: list[float] = field(default_factory=list)
+    run_seconds: list[float] = field(default_factory=list)  # per whole run, as estimated
     _started: float = 0.0
 
     def start(self, what: str) -> None:
         left = ""
-        if self.trained_seconds:
-            each = sum(self.trained_seconds) / len(self.trained_seconds)
+        if self.run_seconds:
+            each = sum(self.run_seconds) / len(self.run_seconds)
             left = f"; about {_duration(each * (self.total - self.done))} left ({_duration(each)} per trained run)"
         self.log(f"[run {self.done + 1} of {self.total}] {what}{left}")
         self._started = time.perf_counter()
 
-    def finish(self, trained: bool) -> None:
+    def finish(self, trained_share: float) -> None:
+        """``trained_share``: the share of the run's episodes trained by this process (0: reused)."""
         self.done += 1
-        if trained:
-            self.trained_seconds.append(time.perf_counter() - self._started)
+        if trained_share > 0:
+            self.run_seconds.append((time.perf_counter() - self._started) / trained_share)
 
 
 def _duration(seconds: float) -> str:
@@ -215,19 +217,21 @@ def _duration(seconds: float) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
 
 
-def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> bool:
+def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> float:
     """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
-    (a resumable checkpoint but no final model) is resumed. Returns whether it trained."""
+    (a resumable checkpoint but no final model) is resumed. Returns the share of the run's episodes
+    trained here: 0 for a reused run, 1 for one trained from the start."""
     from mapless.train import checkpoint as ckpt
     from mapless.train.run import train
 
     if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():
         log(f"  reusing finished run {run_dir}")
-        return False
-    resume = None
+        return 0.0
+    resume, start = None, 0
     if (run_dir / ckpt.CHECKPOINT_FILE).is_file():
         resume = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
-        log(f"  resuming {run_dir} at {resume.get('counters', {}).get('episodes', 0)} episodes")
+        start = int(resume.get("counters", {}).get("episodes", 0))
+        log(f"  resuming {run_dir} at {start} episodes")
     else:
         log(f"  training {train_cfg.model.name} (seed {train_cfg.seed}) -> {run_dir}")
     stats = train(train_cfg, run_dir, resume=resume)
@@ -239,7 +243,7 @@ def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> bool:
         # report a half-trained model as if it were the finished run.
         log(f"  stopped early; {run_dir} is kept and the same command resumes it")
         raise KeyboardInterrupt
-    return True
+    return 1.0 - start / max(stats.get("episodes", 0), 1)
 
 
 # -- evaluation --------------------------------------------------------------------------------------
@@ -320,9 +324,9 @@ def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, mod
         cfg = train_config(config, model, seed=1 + s, extra=extra)
         run_dir = run_dir_for(config, cfg, variant)
         tally.start(f"{model} {variant}, seed {1 + s}")
-        trained = train_run(cfg, run_dir, log)
+        trained_share = train_run(cfg, run_dir, log)
         results, info = ev.trained(run_dir, cfg)
-        tally.finish(trained)
+        tally.finish(trained_share)
         per_seed.append(results)
         meta.append({"run_dir": str(run_dir), **info})
     return per_seed, meta

@@ -272,17 +272,21 @@ def test_planned_runs_of_the_shipped_small_configs(experiment, seeds, runs):
 
 
 def test_run_tally_estimates_the_time_left_from_the_runs_it_trained(monkeypatch):
-    clock = iter([0.0, 600.0, 600.0, 605.0, 605.0])  # a run trained in 10 min, then one reused in 5 s
+    # A run trained in 10 min, one reused in 5 s, then one resumed half-way that took 6 min (12 a run).
+    clock = iter([0.0, 600.0, 600.0, 605.0, 965.0, 965.0])  # a reused run's finish reads no clock
     monkeypatch.setattr("mapless.experiments.time.perf_counter", lambda: next(clock))
     lines: list[str] = []
     tally = RunTally(total=4, log=lines.append)
     tally.start("cvmeta all, seed 1")
-    tally.finish(trained=True)
+    tally.finish(1.0)
     tally.start("cvmeta all, seed 2")
-    tally.finish(trained=False)
+    tally.finish(0.0)
     tally.start("cvmeta no-kitchen, seed 1")
+    tally.finish(0.5)
+    tally.start("cvmeta no-kitchen, seed 2")
     assert lines == [
         "[run 1 of 4] cvmeta all, seed 1",
         "[run 2 of 4] cvmeta all, seed 2; about 30 min left (10 min per trained run)",
         "[run 3 of 4] cvmeta no-kitchen, seed 1; about 20 min left (10 min per trained run)",
+        "[run 4 of 4] cvmeta no-kitchen, seed 2; about 11 min left (11 min per trained run)",
     ]
