@@ -274,7 +274,7 @@ def test_planned_runs_of_the_shipped_small_configs(experiment, seeds, runs):
 def test_run_tally_estimates_the_time_left_from_the_runs_it_trained(monkeypatch):
     # A run trained in 10 min, one reused in 5 s, then one resumed half-way that took 6 min (12 a run).
     clock = iter([0.0, 600.0, 600.0, 605.0, 965.0, 965.0])  # a reused run's finish reads no clock
-    monkeypatch.setattr("mapless.experiments.time.perf_counter", lambda: next(clock))
+    monkeypatch.setattr("mapless.experiments.runs.time.perf_counter", lambda: next(clock))
     lines: list[str] = []
     tally = RunTally(total=4, log=lines.append)
     tally.start("cvmeta all, seed 1")

@@ -1,0 +1,128 @@
+"""Experiment configurations: ``experiments/<experiment>_<budget>.yaml`` -> :class:`ExperimentConfig`,
+and the :class:`~mapless.train.config.TrainConfig` of each of an experiment's runs."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from mapless.config import ConfigError, apply_overrides, from_dict, load_config
+from mapless.errors import MaplessError, UnknownNameError
+from mapless.scenes.catalogue import ROOM_TYPES
+
+EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45")
+BUDGETS = ("smoke", "small", "full")
+ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
+
+
+@dataclass(frozen=True)
+class ExperimentEval:
+    """How runs are evaluated.
+
+    protocol: ``standard`` (select on val, report on test) or ``paper`` (select and report on x21-x30).
+    per_room: the first N episodes per room type of the fixed sets (250 = all).
+    select: evaluate every checkpoint and select (False: the final model only).
+    select_file / report_file: episode files replacing the built-in val / test sets (tests).
+    """
+
+    protocol: Literal["standard", "paper"] = "standard"
+    per_room: int = 250
+    rooms: tuple[str, ...] = ROOM_TYPES
+    select: bool = True
+    select_file: str | None = None
+    report_file: str | None = None
+    batch_size: int = 32
+    workers: int = 2
+    seed: int = 0
+    greedy: bool = False
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment at one budget.
+
+    models: the compared models (Table 1/2, figures); Table 3 always ablates ``focus``.
+    seeds: training seeds per run (mean ± std over them).
+    train: TrainConfig fields shared by every run (nested mapping, validated by TrainConfig).
+    per_model: TrainConfig overrides per model name (e.g. a smaller batch for the meta models).
+    rooms: room types of Table 2 (training rooms) and Table 3 (ablated rooms).
+    focus: the paper's model (cvmeta), for Table 3 and the showcase figures.
+    runs_dir: where training runs go (shared between experiments).
+    single_room_scenes: Table 2's training scenes per room type (default ``train:<room>``, the 20
+        training floor plans of the room).
+    """
+
+    experiment: str = "table1"
+    budget: str = "smoke"
+    models: tuple[str, ...] = ("random", "a3c", "cvmeta")
+    seeds: int = 1
+    train: dict = field(default_factory=dict)
+    per_model: dict = field(default_factory=dict)
+    eval: ExperimentEval = field(default_factory=ExperimentEval)
+    rooms: tuple[str, ...] = ROOM_TYPES
+    focus: str = "cvmeta"
+    runs_dir: str = "runs/experiments"
+    gif: bool = True
+    single_room_scenes: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.experiment not in EXPERIMENTS:
+            raise UnknownNameError("experiment", self.experiment, EXPERIMENTS)
+        if self.seeds < 1:
+            raise ConfigError(f"config key 'seeds': must be >= 1, got {self.seeds}")
+        from mapless.models import MODELS
+
+        for name in (*self.models, self.focus):
+            if name not in MODELS:
+                raise UnknownNameError("model", name, MODELS)
+        for room in (*self.rooms, *self.eval.rooms):
+            if room not in ROOM_TYPES:
+                raise UnknownNameError("room type", room, ROOM_TYPES)
+
+
+def config_path(experiment: str, budget: str, root: Path | None = None) -> Path:
+    """``experiments/<experiment>_<budget>.yaml`` of the repository (or of ``root``)."""
+    base = root or Path(str(resources.files("mapless"))).parent / "experiments"
+    return base / f"{experiment}_{budget}.yaml"
+
+
+def load_experiment(
+    experiment: str,
+    budget: str,
+    path: Path | None = None,
+    overrides: list[str] | None = None,
+    seeds: int | None = None,
+) -> ExperimentConfig:
+    path = path or config_path(experiment, budget)
+    if not path.is_file():
+        raise MaplessError(
+            f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
+        )
+    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds else [])]
+    config = load_config(ExperimentConfig, path, extra)
+    if config.experiment != experiment:
+        raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
+    return config
+
+
+def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
+    """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and seed."""
+    from mapless.train.config import TrainConfig
+
+    data = json.loads(json.dumps(config.train))
+    for layer in (config.per_model.get(model, {}), extra or {}):
+        data = _merge(data, layer)
+    data = apply_overrides(data, [f"model.name={model}", f"seed={seed}"])
+    return from_dict(TrainConfig, data)
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = (
+            _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+        )
+    return out

@@ -1,0 +1,81 @@
+"""How an experiment evaluates: its scenes, episode sets and settings, untrained baselines once,
+trained runs with checkpoint selection."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from mapless.errors import MaplessError
+from mapless.evaluate.metrics import EpisodeResult
+from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
+from mapless.evaluate.selection import PROTOCOLS, load_episodes, select_and_report
+from mapless.experiments.config import ExperimentConfig, train_config
+
+
+def experiment_scenes(config: ExperimentConfig) -> tuple[LibrarySpec, str]:
+    """The scenes (simulator settings) and target set of an experiment: those of its focus model's
+    training config. The untrained baselines and the figures use them too."""
+    env = train_config(config, config.focus, seed=1).env
+    return LibrarySpec.for_env(env), env.target_set
+
+
+@dataclass
+class Evaluator:
+    """Evaluation settings and episode sets of one experiment."""
+
+    config: ExperimentConfig
+    log: Callable[[str], None]
+
+    def __post_init__(self) -> None:
+        e = self.config.eval
+        select_split, report_split, self.protocol_label = PROTOCOLS[e.protocol]
+        self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
+        self.scenes, target_set = experiment_scenes(self.config)
+        self._untrained: dict[str, tuple[list[EpisodeResult], dict]] = {}
+        sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
+        self.select_episodes = load_episodes(select_split, e.select_file, **sets)
+        self.report_episodes = (
+            self.select_episodes
+            if e.protocol == "paper"
+            else load_episodes(report_split, e.report_file, **sets)
+        )
+
+    def library(self, train_cfg) -> LibrarySpec:
+        """A run's scenes; they must be the experiment's, which its episode sets were checked against."""
+        spec = LibrarySpec.for_env(train_cfg.env)
+        if spec.sim_fingerprint != self.scenes.sim_fingerprint:
+            raise MaplessError(
+                f"the {train_cfg.model.name} run's simulator settings differ from the experiment's "
+                f"({self.config.focus}'s), on which its episode sets were checked; give every model the same env.sim"
+            )
+        return spec
+
+    def untrained(self, model: str) -> tuple[list[EpisodeResult], dict]:
+        """An untrained baseline's results, evaluated once per experiment (Table 2 lists it per
+        training room type, with the same episodes and seed)."""
+        if model not in self._untrained:
+            run = evaluate(AgentSpec(model={"name": model}), self.report_episodes, self.settings, self.scenes)
+            self.log(f"  {model}: {len(run.results)} episodes, {run.steps_per_second:.0f} steps/s")
+            self._untrained[model] = (run.results, {"steps_per_second": run.steps_per_second})
+        return self._untrained[model]
+
+    def trained(self, run_dir: Path, train_cfg) -> tuple[list[EpisodeResult], dict]:
+        settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
+        if self.config.eval.select:
+            sel = select_and_report(
+                run_dir, self.select_episodes, self.report_episodes, settings, self.library(train_cfg),
+                self.config.eval.protocol, progress=self.log,
+            )  # fmt: skip
+            self.log(f"  chose {Path(sel.chosen).name} ({sel.chosen_episodes} training episodes)")
+            return sel.report.results, {
+                "selection": sel.summary(),
+                "steps_per_second": sel.report.steps_per_second,
+            }
+        from mapless.train.checkpoint import resolve_model_file
+
+        spec = AgentSpec(checkpoint=str(resolve_model_file(run_dir)))
+        run = evaluate(spec, self.report_episodes, settings, self.library(train_cfg))
+        return run.results, {"steps_per_second": run.steps_per_second}

@@ -1,0 +1,93 @@
+"""An experiment's training runs: their folders, training (or reusing) them, and the progress log."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mapless.config import to_dict
+from mapless.experiments.config import ExperimentConfig
+
+
+def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
+    """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
+    (the progress bar aside), so experiments with an identical run share it."""
+    blob = json.dumps(to_dict(dataclasses.replace(train_cfg, progress=False)), sort_keys=True)
+    digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
+    return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
+
+
+def planned_runs(config: ExperimentConfig) -> int:
+    """How many training runs an experiment goes through (finished ones are reused, not retrained)."""
+    if config.experiment == "table3":  # the focus model, then without one room type at a time
+        return (1 + len(config.rooms)) * config.seeds
+    trained = sum(model != "random" for model in config.models)
+    per_model = len(config.rooms) if config.experiment == "table2" else 1
+    return trained * per_model * config.seeds
+
+
+@dataclass
+class RunTally:
+    """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
+    the time left: the mean wall time of a whole run (training and evaluation) over the runs this
+    process trained, a resumed run's time scaled up by the share of its episodes trained here, times
+    the runs left. Reused runs take seconds, so while some are left it is an upper bound."""
+
+    total: int
+    log: Callable[[str], None]
+    done: int = 0
+    run_seconds: list[float] = field(default_factory=list)  # per whole run, as estimated
+    _started: float = 0.0
+
+    def start(self, what: str) -> None:
+        left = ""
+        if self.run_seconds:
+            each = sum(self.run_seconds) / len(self.run_seconds)
+            left = f"; about {_duration(each * (self.total - self.done))} left ({_duration(each)} per trained run)"
+        self.log(f"[run {self.done + 1} of {self.total}] {what}{left}")
+        self._started = time.perf_counter()
+
+    def finish(self, trained_share: float) -> None:
+        """``trained_share``: the share of the run's episodes trained by this process (0: reused)."""
+        self.done += 1
+        if trained_share > 0:
+            self.run_seconds.append((time.perf_counter() - self._started) / trained_share)
+
+
+def _duration(seconds: float) -> str:
+    minutes = round(seconds / 60)
+    return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
+
+
+def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> float:
+    """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
+    (a resumable checkpoint but no final model) is resumed. Returns the share of the run's episodes
+    trained here: 0 for a reused run, 1 for one trained from the start."""
+    from mapless.train import checkpoint as ckpt
+    from mapless.train.run import train
+
+    if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():
+        log(f"  reusing finished run {run_dir}")
+        return 0.0
+    resume, start = None, 0
+    if (run_dir / ckpt.CHECKPOINT_FILE).is_file():
+        resume = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
+        start = int(resume.get("counters", {}).get("episodes", 0))
+        log(f"  resuming {run_dir} at {start} episodes")
+    else:
+        log(f"  training {train_cfg.model.name} (seed {train_cfg.seed}) -> {run_dir}")
+    stats = train(train_cfg, run_dir, resume=resume)
+    log(
+        f"    {stats.get('episodes', 0):.0f} episodes, {stats.get('frames', 0):.0f} frames in {stats.get('seconds', 0):.0f} s"
+    )
+    if stats.get("stopped_early"):
+        # Ctrl-C stopped the run at a checkpoint: the experiment stops too, rather than evaluate and
+        # report a half-trained model as if it were the finished run.
+        log(f"  stopped early; {run_dir} is kept and the same command resumes it")
+        raise KeyboardInterrupt
+    return 1.0 - start / max(stats.get("episodes", 0), 1)
