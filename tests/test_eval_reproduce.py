@@ -261,32 +261,54 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
 @pytest.mark.parametrize(
     "experiment, seeds, runs",
     [
-        ("table1", 3, 6),  # a3c and cvmeta (random is not trained) x 3 seeds
-        ("table2", 2, 16),  # cvmeta and mjolnir_o x 4 training room types x 2 seeds
-        ("table3", 2, 10),  # the full model and 4 ablations x 2 seeds
-        ("figure3", 1, 2),  # Table 1's runs
+        ("table1", 3, {"a3c": 3, "cvmeta": 3}),  # random is not trained
+        ("table2", 2, {"cvmeta": 8, "mjolnir_o": 8}),  # 4 training room types x 2 seeds
+        ("table3", 2, {"cvmeta": 10}),  # the full model and 4 ablations x 2 seeds
+        ("figure3", 1, {"a3c": 1, "cvmeta": 1}),  # Table 1's runs
     ],
 )
 def test_planned_runs_of_the_shipped_small_configs(experiment, seeds, runs):
     assert planned_runs(load_experiment(experiment, "small", seeds=seeds)) == runs
 
 
+def _fake_clock(monkeypatch, readings: list[float]) -> None:
+    clock = iter(readings)
+    monkeypatch.setattr("mapless.experiments.runs.time.perf_counter", lambda: next(clock))
+
+
 def test_run_tally_estimates_the_time_left_from_the_runs_it_trained(monkeypatch):
     # A run trained in 10 min, one reused in 5 s, then one resumed half-way that took 6 min (12 a run).
-    clock = iter([0.0, 600.0, 600.0, 605.0, 965.0, 965.0])  # a reused run's finish reads no clock
-    monkeypatch.setattr("mapless.experiments.runs.time.perf_counter", lambda: next(clock))
+    _fake_clock(monkeypatch, [0.0, 600.0, 600.0, 605.0, 965.0, 965.0])  # a reused run reads no clock
     lines: list[str] = []
-    tally = RunTally(total=4, log=lines.append)
-    tally.start("cvmeta all, seed 1")
+    tally = RunTally(planned={"cvmeta": 4}, log=lines.append)
+    tally.start("cvmeta", "all, seed 1")
     tally.finish(1.0)
-    tally.start("cvmeta all, seed 2")
+    tally.start("cvmeta", "all, seed 2")
     tally.finish(0.0)
-    tally.start("cvmeta no-kitchen, seed 1")
+    tally.start("cvmeta", "no-kitchen, seed 1")
     tally.finish(0.5)
-    tally.start("cvmeta no-kitchen, seed 2")
+    tally.start("cvmeta", "no-kitchen, seed 2")
     assert lines == [
         "[run 1 of 4] cvmeta all, seed 1",
-        "[run 2 of 4] cvmeta all, seed 2; about 30 min left (10 min per trained run)",
-        "[run 3 of 4] cvmeta no-kitchen, seed 1; about 20 min left (10 min per trained run)",
-        "[run 4 of 4] cvmeta no-kitchen, seed 2; about 11 min left (11 min per trained run)",
+        "[run 2 of 4] cvmeta all, seed 2; about 30 min left (10 min per cvmeta run)",
+        "[run 3 of 4] cvmeta no-kitchen, seed 1; about 20 min left (10 min per cvmeta run)",
+        "[run 4 of 4] cvmeta no-kitchen, seed 2; about 11 min left (11 min per cvmeta run)",
+    ]
+
+
+def test_run_tally_times_each_model_by_its_own_runs(monkeypatch):
+    # Table 1 order: a3c's runs (4 min each), then cvmeta's (20 min each; seed 1 reused).
+    _fake_clock(monkeypatch, [0, 240, 240, 480, 480, 480, 1680, 1680])  # the reused run reads one
+    lines: list[str] = []
+    tally = RunTally(planned={"a3c": 2, "cvmeta": 3}, log=lines.append)
+    for model, seed, share in [("a3c", 1, 1.0), ("a3c", 2, 1.0), ("cvmeta", 1, 0.0), ("cvmeta", 2, 1.0)]:
+        tally.start(model, f"all, seed {seed}")
+        tally.finish(share)
+    tally.start("cvmeta", "all, seed 3")
+    assert lines == [
+        "[run 1 of 5] a3c all, seed 1",
+        "[run 2 of 5] a3c all, seed 2; more than 4 min left; no cvmeta run timed yet (4 min per a3c run)",
+        "[run 3 of 5] cvmeta all, seed 1; no cvmeta run timed yet (4 min per a3c run)",
+        "[run 4 of 5] cvmeta all, seed 2; no cvmeta run timed yet (4 min per a3c run)",
+        "[run 5 of 5] cvmeta all, seed 3; about 20 min left (4 min per a3c run, 20 min per cvmeta run)",
     ]

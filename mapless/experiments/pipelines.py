@@ -41,7 +41,7 @@ def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, mod
     for s in range(config.seeds):
         cfg = train_config(config, model, seed=1 + s, extra=extra)
         run_dir = run_dir_for(config, cfg, variant)
-        tally.start(f"{model} {variant}, seed {1 + s}")
+        tally.start(model, f"{variant}, seed {1 + s}")
         trained_share = train_run(cfg, run_dir, log)
         results, info = ev.trained(run_dir, cfg)
         tally.finish(trained_share)

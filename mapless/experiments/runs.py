@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import json
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,41 +23,57 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
 
 
-def planned_runs(config: ExperimentConfig) -> int:
-    """How many training runs an experiment goes through (finished ones are reused, not retrained)."""
+def planned_runs(config: ExperimentConfig) -> dict[str, int]:
+    """How many training runs an experiment goes through, per model (finished ones are reused, not
+    retrained)."""
     if config.experiment == "table3":  # the focus model, then without one room type at a time
-        return (1 + len(config.rooms)) * config.seeds
-    trained = sum(model != "random" for model in config.models)
+        return {config.focus: (1 + len(config.rooms)) * config.seeds}
     per_model = len(config.rooms) if config.experiment == "table2" else 1
-    return trained * per_model * config.seeds
+    return {model: per_model * config.seeds for model in config.models if model != "random"}
 
 
 @dataclass
 class RunTally:
     """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
-    the time left: the mean wall time of a whole run (training and evaluation) over the runs this
-    process trained, a resumed run's time scaled up by the share of its episodes trained here, times
-    the runs left. Reused runs take seconds, so while some are left it is an upper bound."""
+    the time left. Per model: the mean wall time of a whole run (training and evaluation) over the
+    runs of that model this process trained, a resumed run's time scaled up by the share of its
+    episodes trained here, times that model's runs left. Models differ by far (an a3c run of the
+    small budget takes minutes, a cvmeta one twenty), so while a model with runs left has none timed
+    yet the estimate is a lower bound and says so. Reused runs take seconds, so while some are left
+    the timed part is an upper bound."""
 
-    total: int
+    planned: dict[str, int]  # model -> runs (:func:`planned_runs`)
     log: Callable[[str], None]
-    done: int = 0
-    run_seconds: list[float] = field(default_factory=list)  # per whole run, as estimated
+    finished: Counter[str] = field(default_factory=Counter)
+    run_seconds: dict[str, list[float]] = field(default_factory=dict)  # per whole run, as estimated
+    _model: str = ""
     _started: float = 0.0
 
-    def start(self, what: str) -> None:
-        left = ""
-        if self.run_seconds:
-            each = sum(self.run_seconds) / len(self.run_seconds)
-            left = f"; about {_duration(each * (self.total - self.done))} left ({_duration(each)} per trained run)"
-        self.log(f"[run {self.done + 1} of {self.total}] {what}{left}")
-        self._started = time.perf_counter()
+    def start(self, model: str, what: str) -> None:
+        """Log the start of a run of ``model`` (``what``: the rest of its description)."""
+        done, total = sum(self.finished.values()), sum(self.planned.values())
+        self.log(f"[run {done + 1} of {total}] {model} {what}{self._time_left()}")
+        self._model, self._started = model, time.perf_counter()
 
     def finish(self, trained_share: float) -> None:
         """``trained_share``: the share of the run's episodes trained by this process (0: reused)."""
-        self.done += 1
+        self.finished[self._model] += 1
         if trained_share > 0:
-            self.run_seconds.append((time.perf_counter() - self._started) / trained_share)
+            seconds = (time.perf_counter() - self._started) / trained_share
+            self.run_seconds.setdefault(self._model, []).append(seconds)
+
+    def _time_left(self) -> str:
+        per_run = {model: sum(s) / len(s) for model, s in self.run_seconds.items()}
+        if not per_run:
+            return ""
+        left = Counter(self.planned) - self.finished  # runs not finished, per model (none: absent)
+        seconds = sum(per_run[model] * n for model, n in left.items() if model in per_run)
+        each = ", ".join(f"{_duration(s)} per {model} run" for model, s in per_run.items())
+        untimed = [model for model in left if model not in per_run]
+        if not untimed:
+            return f"; about {_duration(seconds)} left ({each})"
+        known = f"more than {_duration(seconds)} left; " if seconds > 0 else ""
+        return f"; {known}no {', '.join(untimed)} run timed yet ({each})"
 
 
 def _duration(seconds: float) -> str:
