@@ -307,7 +307,7 @@ def test_run_tally_times_each_model_by_its_own_runs(monkeypatch):
     tally.start("cvmeta", "all, seed 3")
     assert lines == [
         "[run 1 of 5] a3c all, seed 1",
-        "[run 2 of 5] a3c all, seed 2; more than 4 min left; no cvmeta run timed yet (4 min per a3c run)",
+        "[run 2 of 5] a3c all, seed 2; about 4 min left for a3c; no cvmeta run timed yet (4 min per a3c run)",
         "[run 3 of 5] cvmeta all, seed 1; no cvmeta run timed yet (4 min per a3c run)",
         "[run 4 of 5] cvmeta all, seed 2; no cvmeta run timed yet (4 min per a3c run)",
         "[run 5 of 5] cvmeta all, seed 3; about 20 min left (4 min per a3c run, 20 min per cvmeta run)",

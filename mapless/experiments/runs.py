@@ -38,9 +38,9 @@ class RunTally:
     the time left. Per model: the mean wall time of a whole run (training and evaluation) over the
     runs of that model this process trained, a resumed run's time scaled up by the share of its
     episodes trained here, times that model's runs left. Models differ by far (an a3c run of the
-    small budget takes minutes, a cvmeta one twenty), so while a model with runs left has none timed
-    yet the estimate is a lower bound and says so. Reused runs take seconds, so while some are left
-    the timed part is an upper bound."""
+    small budget takes minutes, a cvmeta one twenty), so a model with runs left but none timed yet is
+    named, and the estimate covers the others only. Reused runs take seconds, so while some are left
+    the estimate is an upper bound."""
 
     planned: dict[str, int]  # model -> runs (:func:`planned_runs`)
     log: Callable[[str], None]
@@ -72,7 +72,8 @@ class RunTally:
         untimed = [model for model in left if model not in per_run]
         if not untimed:
             return f"; about {_duration(seconds)} left ({each})"
-        known = f"more than {_duration(seconds)} left; " if seconds > 0 else ""
+        timed = [model for model in left if model in per_run]
+        known = f"about {_duration(seconds)} left for {', '.join(timed)}; " if timed else ""
         return f"; {known}no {', '.join(untimed)} run timed yet ({each})"
 
 
