@@ -19,10 +19,9 @@ import argparse
 import numpy as np
 import torch
 
-from mapless.sim.library import SceneLibrary
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.checkpoint import load_model
-from mapless.train.common import reward_config, target_fields, training_sampler
+from mapless.train.common import BuiltinLibrary, reward_config, target_fields, training_sampler
 from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_batch
 
 
@@ -37,7 +36,7 @@ def main() -> None:
     model, config, counters = load_model(args.snapshot)
     model.train()
     scenes = config.env.scene_list()
-    library = SceneLibrary.builtin()
+    library = BuiltinLibrary(config)()  # the run's own scenes and simulator settings
     library.prepare(scenes, progress=False)
     rng = np.random.default_rng(args.seed)
     sampler = training_sampler(config, library, seed=args.seed)
