@@ -24,14 +24,12 @@ def random_success(config, episodes: int) -> tuple[float, float]:
     import torch
 
     from mapless.models import build_model
-    from mapless.sim.vector import BatchedNavEnv
-    from mapless.train.common import BuiltinLibrary, reward_config, seed_for, target_fields, training_sampler
+    from mapless.train.common import BuiltinLibrary, seed_for, training_env, training_sampler
     from mapless.train.rollout import make_actor, observation_keys, run_batch
 
     library = BuiltinLibrary(config)()
     batch = 64
-    env = BatchedNavEnv(library, config.env.scene_list(), batch, targets=target_fields(config),
-                        rewards=reward_config(config), max_steps=config.env.max_steps)  # fmt: skip
+    env = training_env(config, library, batch)
     sampler = training_sampler(config, library, seed_for(config, 99))
     rng = np.random.default_rng(seed_for(config, 98))
     model = build_model(config.model.__class__(name="random", category_set=config.model.category_set))

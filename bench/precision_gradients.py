@@ -19,9 +19,8 @@ import argparse
 import numpy as np
 import torch
 
-from mapless.sim.vector import BatchedNavEnv
 from mapless.train.checkpoint import load_model
-from mapless.train.common import BuiltinLibrary, reward_config, target_fields, training_sampler
+from mapless.train.common import BuiltinLibrary, training_env, training_sampler
 from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_batch
 
 
@@ -44,14 +43,7 @@ def main() -> None:
     for _ in range(2):
         episodes = [sampler.sample(rng) for _ in range(args.batch)]
         batches.append((episodes, rng.random((args.batch, config.env.max_steps))))
-    env = BatchedNavEnv(
-        library,
-        scenes,
-        args.batch,
-        targets=target_fields(config),
-        rewards=reward_config(config),
-        max_steps=config.env.max_steps,
-    )
+    env = training_env(config, library, args.batch)
 
     played = []
     passes = [("fp32", batches[0]), ("bf16", batches[0]), ("fp32", batches[0]), ("fp32", batches[1])]

@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from mapless.sim.vector import BatchedNavEnv
 from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.common import (
@@ -31,11 +30,10 @@ from mapless.train.common import (
     configure_torch,
     fill_missing_gradients,
     new_model,
-    reward_config,
     run_summary,
     seed_for,
-    target_fields,
     trainable,
+    training_env,
     training_sampler,
 )
 from mapless.train.config import TrainConfig
@@ -79,15 +77,7 @@ class BatchedTrainer:
         self.obs_keys = observation_keys(self.model)
         library = self.library_factory()
         self.sampler = training_sampler(cfg, library, seed_for(cfg, 20_000 + rank))
-        self.env = BatchedNavEnv(
-            library,
-            cfg.env.scene_list(),
-            cfg.batch_size,
-            targets=target_fields(cfg),
-            rewards=reward_config(cfg),
-            mode="train",
-            max_steps=cfg.env.max_steps,
-        )
+        self.env = training_env(cfg, library, cfg.batch_size)
         if resume is not None:
             self._restore(resume)
         else:

@@ -16,6 +16,7 @@ from mapless.episodes.sampler import TrainingSampler
 from mapless.models import NavModel, build_model
 from mapless.sim.library import SceneLibrary
 from mapless.sim.task import RewardConfig, TargetFields
+from mapless.sim.vector import BatchedNavEnv
 from mapless.train.config import TrainConfig
 
 #: Builds the scene library in the process that needs it (async workers build their own).
@@ -57,6 +58,19 @@ def reward_config(config: TrainConfig) -> RewardConfig:
 
 def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:
     return TrainingSampler(library, config.env.scene_list(), config.env.target_set, seed=seed)
+
+
+def training_env(config: TrainConfig, library: SceneLibrary, batch_size: int) -> BatchedNavEnv:
+    """``batch_size`` training episodes in lockstep on the run's scenes, targets and rewards."""
+    return BatchedNavEnv(
+        library,
+        config.env.scene_list(),
+        batch_size,
+        targets=target_fields(config),
+        rewards=reward_config(config),
+        mode="train",
+        max_steps=config.env.max_steps,
+    )
 
 
 def configure_torch(threads: int) -> None:
