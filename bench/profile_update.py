@@ -10,8 +10,15 @@ which operators one model spends more on than another (``cvmeta`` against ``savn
 docs/training.md "Why cvmeta trains slower than savn"). ``--shapes`` splits the matrix products by
 operand shapes, which tells an LSTM product (2048 gate columns) from a GCN one (101 nodes).
 
+``--free-graph`` adds a counterfactual column, ``cvmeta/free-graph``: cvmeta with its graph
+descriptor (the hierarchical object GCN) replaced by a stand-in that costs next to nothing, the
+same shape and one parameter in the graph. Everything else, the LSTM, inner loop, fusion, context
+and target encoders, is cvmeta's. Its frame rate is what cvmeta would reach with a free GCN, so it
+bounds what any speed-up of the GCN can give.
+
     python bench/profile_update.py [--models cvmeta,savn] [--updates 6] [--batch 32]
                                    [--precision bf16] [--threads 1] [--top 25] [--shapes]
+                                   [--free-graph]
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import argparse
 import time
 from collections import defaultdict
 
+import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 MATRIX_PRODUCTS = {"mm", "bmm", "addmm", "baddbmm"}
@@ -62,10 +70,32 @@ def make_trainer(model: str, batch: int, precision: str, threads: int):
     return trainer
 
 
+FREE_GRAPH = "cvmeta/free-graph"
+
+
+def free_graph_trainer(batch: int, precision: str, threads: int):
+    """A cvmeta trainer whose graph descriptor is a stand-in of (almost) no cost (see the top)."""
+    trainer = make_trainer("cvmeta", batch, precision, threads)
+    model = trainer.model
+
+    def free_graph_descriptor(in_view):  # [B, C] -> [B, 64, C], as the GCN's output
+        return torch.relu(in_view.unsqueeze(1) * model.W2.weight[:, :1].unsqueeze(0))
+
+    model.graph_descriptor = free_graph_descriptor
+    for _ in range(2):
+        trainer.update()
+    return trainer
+
+
 def profile(models: list[str], updates: int, batch: int, precision: str, threads: int, shapes: bool) -> dict:
     """Per-operator totals per update over ``updates`` timed updates of each model, plus the
     wall time of as many untimed ones; the models alternate update by update."""
-    trainers = {m: make_trainer(m, batch, precision, threads) for m in models}
+    trainers = {
+        m: free_graph_trainer(batch, precision, threads)
+        if m == FREE_GRAPH
+        else make_trainer(m, batch, precision, threads)
+        for m in models
+    }
     timers = {m: OperatorTimer(shapes) for m in models}
     wall = dict.fromkeys(models, 0.0)
     frames = dict.fromkeys(models, 0)
@@ -96,14 +126,21 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--shapes", action="store_true", help="matrix products by operand shapes")
+    parser.add_argument("--free-graph", action="store_true", help=f"add {FREE_GRAPH} (see the top)")
     args = parser.parse_args()
 
-    models = args.models.split(",")
+    models = args.models.split(",") + ([FREE_GRAPH] if args.free_graph else [])
     results = profile(models, args.updates, args.batch, args.precision, args.threads, args.shapes)
     header = "".join(f" {m + ' ms':>12s} {'calls':>7s}" for m in models)
     print(f"per update, B = {args.batch}, {args.precision}, {args.threads} thread(s)")
     for label, key in [("wall (untimed)", "wall_ms"), ("frames (untimed)", "frames")]:
         print(f"{label:22s}" + "".join(f" {results[m][key]:12.0f} {'':7s}" for m in models))
+    rates = {m: results[m]["frames"] / results[m]["wall_ms"] * 1e3 for m in models}
+    print(f"{'frames/s (untimed)':22s}" + "".join(f" {rates[m]:12.1f} {'':7s}" for m in models))
+    print(
+        f"{'ratio to ' + models[0]:22s}"
+        + "".join(f" {rates[m] / rates[models[0]]:12.2f} {'':7s}" for m in models)
+    )
     totals = {m: (sum(results[m]["ms"].values()), sum(results[m]["calls"].values())) for m in models}
     print(f"{'all operators':22s}" + "".join(f" {totals[m][0]:12.0f} {totals[m][1]:7.0f}" for m in models))
     print(f"\n{'operator':22s}{header}" if not args.shapes else f"\n{header}  operator")

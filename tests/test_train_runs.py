@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,8 +18,9 @@ from train_fixtures import fixture_library, tiny_config
 from mapless.cli import main as cli_main
 from mapless.config import ConfigError, load_config
 from mapless.train import checkpoint as ckpt
-from mapless.train.common import clip_gradients, new_model
+from mapless.train.common import clip_gradients, configure_torch, new_model
 from mapless.train.config import TrainConfig
+from mapless.train.precision import KERNEL_CACHE_CAPACITY
 from mapless.train.run import resume_config, train
 
 
@@ -98,6 +100,16 @@ def test_gradient_clipping_as_the_references(model: str, clipped: bool) -> None:
     assert clip_gradients(net, config) == pytest.approx(count**0.5, rel=1e-5)
     after = torch.cat([p.grad.flatten() for p in net.parameters()]).norm()
     assert float(after) == pytest.approx(config.optim.grad_clip if clipped else count**0.5, rel=1e-3)
+
+
+def test_trainers_keep_more_compiled_bf16_kernels_unless_the_user_chose(monkeypatch) -> None:
+    """oneDNN's default 1,024 compiled kernels are too few for a cvmeta run's product shapes."""
+    monkeypatch.delenv("ONEDNN_PRIMITIVE_CACHE_CAPACITY", raising=False)
+    configure_torch(0)
+    assert int(os.environ["ONEDNN_PRIMITIVE_CACHE_CAPACITY"]) == KERNEL_CACHE_CAPACITY > 1024
+    monkeypatch.setenv("ONEDNN_PRIMITIVE_CACHE_CAPACITY", "512")
+    configure_torch(0)
+    assert os.environ["ONEDNN_PRIMITIVE_CACHE_CAPACITY"] == "512"
 
 
 def test_the_last_partial_log_interval_is_written(tmp_path: Path) -> None:

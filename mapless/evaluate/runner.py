@@ -68,6 +68,10 @@ class ModelAgent:
         self.torch = torch
         self.batch_size = batch_size
         self.bf16 = bf16
+        if bf16:
+            from mapless.train.precision import keep_compiled_kernels
+
+            keep_compiled_kernels()
         self.model = model.eval()
         from mapless.train.rollout import observation_keys
 

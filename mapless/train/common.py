@@ -18,6 +18,7 @@ from mapless.sim.library import SceneLibrary
 from mapless.sim.task import RewardConfig, TargetFields
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.config import TrainConfig
+from mapless.train.precision import keep_compiled_kernels
 
 #: Builds the scene library in the process that needs it (async workers build their own).
 LibraryFactory = Callable[[], SceneLibrary]
@@ -74,8 +75,8 @@ def training_env(config: TrainConfig, library: SceneLibrary, batch_size: int) ->
 
 
 def configure_torch(threads: int) -> None:
-    """Per-process torch settings of a trainer: ``threads`` (0 = torch's default) and denormals
-    flushed to zero.
+    """Per-process torch settings of a trainer: ``threads`` (0 = torch's default), denormals
+    flushed to zero, and oneDNN's compiled kernels kept (:func:`keep_compiled_kernels`).
 
     Adam's second-moment estimate of weights that rarely receive gradient (the LSTM columns of
     mostly-zero ReLU features) decays into the subnormal range, where every multiply and square root
@@ -85,6 +86,7 @@ def configure_torch(threads: int) -> None:
     if threads:
         torch.set_num_threads(threads)
     torch.set_flush_denormal(True)
+    keep_compiled_kernels()
 
 
 def new_model(config: TrainConfig, device: torch.device | str = "cpu") -> NavModel:

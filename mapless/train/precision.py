@@ -10,10 +10,18 @@
 
 Parameters, optimizer state, LSTM gates, heads, the learned loss and the A3C loss stay float32, and
 evaluation runs in float32 unless asked otherwise (``mapless eval --bf16``).
+
+On the CPU, bfloat16 matrix products run through oneDNN, which compiles a kernel for every operand
+shape it meets (4-5 ms each on a Sapphire Rapids core, against 0.4 ms for the product itself at
+cvmeta's GCN shapes) and keeps the last 1,024 of them. A training rollout's products vary in their
+row counts (running episodes, new in-view rows, frames per update), and a cvmeta run meets more
+than 1,024 shapes within 30 updates, so with the default cache it keeps recompiling:
+:func:`keep_compiled_kernels` enlarges that cache.
 """
 
 from __future__ import annotations
 
+import os
 from contextlib import AbstractContextManager
 
 import torch
@@ -30,3 +38,17 @@ def encoder_autocast(dtype: torch.dtype | None, device: torch.device) -> Abstrac
 def like(x: torch.Tensor | None, reference: torch.Tensor) -> torch.Tensor | None:
     """``x`` (an autocast output) back in the dtype of the rollout's state ``reference``."""
     return x if x is None or x.dtype == reference.dtype else x.to(reference.dtype)
+
+
+#: oneDNN kernels kept compiled per process (oneDNN's default is 1,024).
+KERNEL_CACHE_CAPACITY = 16384
+
+
+def keep_compiled_kernels() -> None:
+    """Enlarge oneDNN's kernel cache to :data:`KERNEL_CACHE_CAPACITY` unless the user set
+    ``ONEDNN_PRIMITIVE_CACHE_CAPACITY``.
+
+    oneDNN reads the variable when it creates its first kernel, so this must run before the first
+    bfloat16 product of the process (trainers call it from ``configure_torch``). A cvmeta bf16
+    update after 40 warm-up updates: 800 -> 685 ms, for 43 MB more memory (2026-12-03)."""
+    os.environ.setdefault("ONEDNN_PRIMITIVE_CACHE_CAPACITY", str(KERNEL_CACHE_CAPACITY))
