@@ -16,7 +16,7 @@ same shape and one parameter in the graph. Everything else, the LSTM, inner loop
 and target encoders, is cvmeta's. Its frame rate is what cvmeta would reach with a free GCN, so it
 bounds what any speed-up of the GCN can give.
 
-    python bench/profile_update.py [--models cvmeta,savn] [--updates 6] [--batch 32]
+    python bench/profile_update.py [--models cvmeta,savn] [--updates 6] [--warmup 2] [--batch 32]
                                    [--precision bf16] [--threads 1] [--top 25] [--shapes]
                                    [--free-graph]
 """
@@ -54,48 +54,40 @@ class OperatorTimer(TorchDispatchMode):
         return out
 
 
-def make_trainer(model: str, batch: int, precision: str, threads: int):
-    """A fresh batched trainer on the kitchens, after two warm-up updates."""
+FREE_GRAPH = "cvmeta/free-graph"
+
+
+def make_trainer(model: str, batch: int, precision: str, threads: int, warmup: int):
+    """A fresh batched trainer on the kitchens, after ``warmup`` updates (``FREE_GRAPH``: cvmeta
+    with a graph descriptor of (almost) no cost, see the top)."""
     from mapless.config import apply_overrides, from_dict
     from mapless.train.batched import BatchedTrainer
     from mapless.train.config import TrainConfig
 
-    overrides = [f"model.name={model}", "env.scenes=train:kitchen", f"batch_size={batch}"]
+    name = "cvmeta" if model == FREE_GRAPH else model
+    overrides = [f"model.name={name}", "env.scenes=train:kitchen", f"batch_size={batch}"]
     overrides += [f"precision={precision}", f"threads={threads}", "progress=false"]
     overrides += ["episodes=1000000000", "checkpoint_every=1000000000", "log_every=1000000000"]
     trainer = BatchedTrainer(from_dict(TrainConfig, apply_overrides({}, overrides)), None)
     trainer._setup(None)
-    for _ in range(2):
+    if model == FREE_GRAPH:
+        cvmeta = trainer.model
+
+        def free_graph_descriptor(in_view):  # [B, C] -> [B, 64, C], as the GCN's output
+            return torch.relu(in_view.unsqueeze(1) * cvmeta.W2.weight[:, :1].unsqueeze(0))
+
+        cvmeta.graph_descriptor = free_graph_descriptor
+    for _ in range(warmup):
         trainer.update()
     return trainer
 
 
-FREE_GRAPH = "cvmeta/free-graph"
-
-
-def free_graph_trainer(batch: int, precision: str, threads: int):
-    """A cvmeta trainer whose graph descriptor is a stand-in of (almost) no cost (see the top)."""
-    trainer = make_trainer("cvmeta", batch, precision, threads)
-    model = trainer.model
-
-    def free_graph_descriptor(in_view):  # [B, C] -> [B, 64, C], as the GCN's output
-        return torch.relu(in_view.unsqueeze(1) * model.W2.weight[:, :1].unsqueeze(0))
-
-    model.graph_descriptor = free_graph_descriptor
-    for _ in range(2):
-        trainer.update()
-    return trainer
-
-
-def profile(models: list[str], updates: int, batch: int, precision: str, threads: int, shapes: bool) -> dict:
+def profile(
+    models: list[str], updates: int, batch: int, precision: str, threads: int, shapes: bool, warmup: int
+) -> dict:
     """Per-operator totals per update over ``updates`` timed updates of each model, plus the
     wall time of as many untimed ones; the models alternate update by update."""
-    trainers = {
-        m: free_graph_trainer(batch, precision, threads)
-        if m == FREE_GRAPH
-        else make_trainer(m, batch, precision, threads)
-        for m in models
-    }
+    trainers = {m: make_trainer(m, batch, precision, threads, warmup) for m in models}
     timers = {m: OperatorTimer(shapes) for m in models}
     wall = dict.fromkeys(models, 0.0)
     frames = dict.fromkeys(models, 0)
@@ -121,6 +113,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", default="cvmeta,savn")
     parser.add_argument("--updates", type=int, default=6)
+    parser.add_argument(
+        "--warmup", type=int, default=2, help="updates before timing (bf16: ~40 compile oneDNN's kernels)"
+    )
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--precision", default="bf16", choices=["fp32", "bf16"])
     parser.add_argument("--threads", type=int, default=1)
@@ -130,7 +125,9 @@ def main() -> None:
     args = parser.parse_args()
 
     models = args.models.split(",") + ([FREE_GRAPH] if args.free_graph else [])
-    results = profile(models, args.updates, args.batch, args.precision, args.threads, args.shapes)
+    results = profile(
+        models, args.updates, args.batch, args.precision, args.threads, args.shapes, args.warmup
+    )
     header = "".join(f" {m + ' ms':>12s} {'calls':>7s}" for m in models)
     print(f"per update, B = {args.batch}, {args.precision}, {args.threads} thread(s)")
     for label, key in [("wall (untimed)", "wall_ms"), ("frames (untimed)", "frames")]:
