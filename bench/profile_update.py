@@ -18,7 +18,7 @@ bounds what any speed-up of the GCN can give.
 
     python bench/profile_update.py [--models cvmeta,savn] [--updates 6] [--warmup 2] [--batch 32]
                                    [--precision bf16] [--threads 1] [--top 25] [--shapes]
-                                   [--free-graph]
+                                   [--free-graph] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ class OperatorTimer(TorchDispatchMode):
 FREE_GRAPH = "cvmeta/free-graph"
 
 
-def make_trainer(model: str, batch: int, precision: str, threads: int, warmup: int):
+def make_trainer(model: str, batch: int, precision: str, threads: int, warmup: int, sets: list[str]):
     """A fresh batched trainer on the kitchens, after ``warmup`` updates (``FREE_GRAPH``: cvmeta
     with a graph descriptor of (almost) no cost, see the top)."""
     from mapless.config import apply_overrides, from_dict
@@ -68,6 +68,7 @@ def make_trainer(model: str, batch: int, precision: str, threads: int, warmup: i
     overrides = [f"model.name={name}", "env.scenes=train:kitchen", f"batch_size={batch}"]
     overrides += [f"precision={precision}", f"threads={threads}", "progress=false"]
     overrides += ["episodes=1000000000", "checkpoint_every=1000000000", "log_every=1000000000"]
+    overrides += sets
     trainer = BatchedTrainer(from_dict(TrainConfig, apply_overrides({}, overrides)), None)
     trainer._setup(None)
     if model == FREE_GRAPH:
@@ -83,11 +84,18 @@ def make_trainer(model: str, batch: int, precision: str, threads: int, warmup: i
 
 
 def profile(
-    models: list[str], updates: int, batch: int, precision: str, threads: int, shapes: bool, warmup: int
+    models: list[str],
+    updates: int,
+    batch: int,
+    precision: str,
+    threads: int,
+    shapes: bool,
+    warmup: int,
+    sets: list[str],
 ) -> dict:
     """Per-operator totals per update over ``updates`` timed updates of each model, plus the
     wall time of as many untimed ones; the models alternate update by update."""
-    trainers = {m: make_trainer(m, batch, precision, threads, warmup) for m in models}
+    trainers = {m: make_trainer(m, batch, precision, threads, warmup, sets) for m in models}
     timers = {m: OperatorTimer(shapes) for m in models}
     wall = dict.fromkeys(models, 0.0)
     frames = dict.fromkeys(models, 0)
@@ -121,12 +129,15 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--shapes", action="store_true", help="matrix products by operand shapes")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="training config key, every model"
+    )
     parser.add_argument("--free-graph", action="store_true", help=f"add {FREE_GRAPH} (see the top)")
     args = parser.parse_args()
 
     models = args.models.split(",") + ([FREE_GRAPH] if args.free_graph else [])
     results = profile(
-        models, args.updates, args.batch, args.precision, args.threads, args.shapes, args.warmup
+        models, args.updates, args.batch, args.precision, args.threads, args.shapes, args.warmup, args.set
     )
     header = "".join(f" {m + ' ms':>12s} {'calls':>7s}" for m in models)
     print(f"per update, B = {args.batch}, {args.precision}, {args.threads} thread(s)")

@@ -98,6 +98,21 @@ def test_scene_priors_and_gve_sizes():
     assert tuple(gve.critic_linear.weight.shape) == (1, 1024)
 
 
+def test_cvmeta_gcn_width_is_a_knob():
+    """``gcn_hidden`` narrows the GCN's layers, not its input (C + 300) or its output (64 per node)."""
+    default, narrow = build_model("cvmeta"), build_model("cvmeta", gcn_hidden=48)
+    assert tuple(default.W1.weight.shape) == (401, 401)
+    assert [tuple(narrow.get_submodule(w).weight.shape) for w in ("W0", "W1", "W2")] == [
+        (48, 401),
+        (48, 48),
+        (64, 48),
+    ]
+    in_view = (torch.rand(3, 101, generator=torch.Generator().manual_seed(0)) < 0.1).float()
+    assert narrow.graph_descriptor(in_view).shape == default.graph_descriptor(in_view).shape == (3, 64, 101)
+    with pytest.raises(ConfigError, match="gcn_hidden"):
+        build_model("cvmeta", gcn_hidden=0)
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_real_size_forward_shapes(name):
     model = build_model(name).eval()

@@ -63,6 +63,9 @@ class ModelConfig:
         previous-action embedding, LSTM and actor, while the state and target encoders v, u stay
         fixed); None = the model's default (cvmeta: policy, the others: all).
     fusion_channels: output channels of cvmeta's pointwise fusion per category.
+    gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
+        (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
+        that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
     reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
         ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
         parameter counts and state-dict keys match the originals. They never affect outputs.
@@ -79,12 +82,15 @@ class ModelConfig:
     interaction_steps: int = 6
     max_inner_updates: int = 4
     fusion_channels: int = 32
+    gcn_hidden: int | None = None
     reference_extras: bool = False
     adapt: str | None = None
 
     def __post_init__(self) -> None:
         if self.adapt not in (None, *ADAPT_MODES):
             raise ConfigError(f"config key 'model.adapt': {self.adapt!r} is not one of {ADAPT_MODES}")
+        if self.gcn_hidden is not None and self.gcn_hidden < 1:
+            raise ConfigError(f"config key 'model.gcn_hidden': {self.gcn_hidden} is not a positive width")
 
 
 class NavModel(nn.Module):

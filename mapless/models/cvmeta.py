@@ -6,7 +6,8 @@ Per category j (the C graph nodes play the role of SAVN's 49 cells):
 * context descriptor: ``ReLU(Conv1d 5 -> 64)`` of ``C_j = [B, x_c, y_c, A_bbox, CS]``, dropout;
 * graph descriptor: MJOLNIR's object GCN on the *hierarchical* graph, node features
   ``[in-view indicator of all categories || node GloVe]`` (C + 300) through
-  ``ReLU(W0 Â ·)``, ``ReLU(W1 Â ·)`` (C + 300) and ``ReLU(W2 Â ·)`` (64 per node);
+  ``ReLU(W0 Â ·)``, ``ReLU(W1 Â ·)`` (C + 300 wide, or ``model.gcn_hidden``) and ``ReLU(W2 Â ·)``
+  (64 per node);
 * target descriptor: ``ReLU(Linear 300 -> 64)`` of the target GloVe, tiled over the categories;
 * previous policy: ``ReLU(Linear 6 -> 10)``, tiled (as SAVN).
 
@@ -55,12 +56,13 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
         nodes, width = self.num_categories, self.num_categories + self.glove_dim
+        hidden = config.gcn_hidden or width
         self.context_embed = nn.Conv1d(5, EMBED, 1)
         self.A = normalized_adjacency_parameter(self.knowledge.graph(self.graph_name()))
         self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
-        self.W0 = nn.Linear(width, width, bias=False)
-        self.W1 = nn.Linear(width, width, bias=False)
-        self.W2 = nn.Linear(width, EMBED, bias=False)
+        self.W0 = nn.Linear(width, hidden, bias=False)
+        self.W1 = nn.Linear(hidden, hidden, bias=False)
+        self.W2 = nn.Linear(hidden, EMBED, bias=False)
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
@@ -78,7 +80,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
         shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))
-        x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, C + 300]
+        x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, hidden]
         x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
         x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 64]
         return x.permute(1, 2, 0)
