@@ -10,9 +10,14 @@ largest gradient norm and where the policy fell into the no-``Done`` state seen 
 calling ``Done`` and wanders, collecting parent-object rewards, with its entropy high or low), and
 plots success, episode length and entropy against episodes.
 
+``--set KEY=VALUE`` changes every run's config beyond its precision and seed, so the same study
+answers other questions of the kind "does this change hurt learning?": e.g. ``--precisions fp32
+--set model.gcn_hidden=64 --runs runs/gcn64_study --out reports/gcn64_study`` (give such a study its
+own ``--runs`` folder: runs are found by precision and seed only).
+
     python bench/precision_study.py [--seeds 2,3] [--precisions fp32,bf16] [--episodes 30000]
                                     [--parallel 2] [--runs runs/precision_study] [--out reports/precision_study]
-                                    [--no-train]
+                                    [--set KEY=VALUE ...] [--no-train]
 """
 
 from __future__ import annotations
@@ -31,12 +36,14 @@ NO_DONE_LENGTH = 0.9  # share of the step limit
 LAST_RECORDS = 5  # 5 x log_every 640 = the last 3,200 episodes
 
 
-def command(run_dir: Path, precision: str, seed: int, episodes: int) -> list[str]:
-    """``mapless train`` for a run: fresh, or resumed from its checkpoint up to ``episodes``."""
+def command(run_dir: Path, precision: str, seed: int, episodes: int, extra: list[str]) -> list[str]:
+    """``mapless train`` for a run (``extra``: more ``--set`` overrides): fresh, or resumed from its
+    checkpoint up to ``episodes``."""
     mapless = [sys.executable, "-m", "mapless", "train"]
     if (run_dir / "checkpoint.pt").is_file():
         return [*mapless, "--resume", str(run_dir), "--set", f"episodes={episodes}"]
     sets = [f"episodes={episodes}", f"seed={seed}", f"precision={precision}", "threads=1", "progress=false"]
+    sets += extra
     return [*mapless, str(CONFIG), "--run-dir", str(run_dir), *(a for s in sets for a in ("--set", s))]
 
 
@@ -77,6 +84,9 @@ def main() -> None:
     parser.add_argument("--parallel", type=int, default=2)
     parser.add_argument("--runs", type=Path, default=Path("runs/precision_study"))
     parser.add_argument("--out", type=Path, default=Path("reports/precision_study"))
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="config override of every run"
+    )
     parser.add_argument("--no-train", action="store_true", help="only report on the runs as they stand")
     args = parser.parse_args()
 
@@ -92,7 +102,9 @@ def main() -> None:
             log = (args.runs / f"{run_dir.name}.log").open("a")
             print(f"training {run_dir.name} to {args.episodes} episodes (log: {log.name})", flush=True)
             jobs.append(
-                subprocess.Popen(command(run_dir, precision, seed, args.episodes), stdout=log, stderr=log)
+                subprocess.Popen(
+                    command(run_dir, precision, seed, args.episodes, args.set), stdout=log, stderr=log
+                )
             )
         for job in jobs:
             if job.wait() != 0:
@@ -127,7 +139,7 @@ def main() -> None:
         f"training episodes (points: means of {yaml.safe_load(CONFIG.read_text())['log_every']})"
     )
     top.legend(ncol=2, fontsize=8)
-    top.set_title("cvmeta learning check, fp32 vs bf16")
+    top.set_title(f"cvmeta learning check, {' vs '.join(args.precisions.split(','))} {' '.join(args.set)}")
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / "precision_study.png", dpi=120)
