@@ -89,7 +89,8 @@ def trajectory_figure(
     scene = load_scene(first.scene)
     data = library[first.scene]
     n = len(results)
-    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5.2), squeeze=False)
+    # Shared limits: every panel shows the room at the same scale, whatever its view cone covers.
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 5.2), squeeze=False, sharex=True, sharey=True)
     for i, (ax, (label, result)) in enumerate(zip(axes[0], results.items(), strict=True)):
         if result.scene != first.scene or result.index != first.index:
             raise ValueError("trajectory_figure compares models on one and the same episode")
