@@ -2,6 +2,7 @@
 
 import json
 import pathlib
+import re
 from importlib import resources
 
 import numpy as np
@@ -26,7 +27,23 @@ from mapless.scenes.catalogue import ROOM_TYPES, scene_names
 from mapless.scenes.categories import all_targets, category_set
 from mapless.scenes.layout import load_scene
 
-PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mapless"
+REPO = pathlib.Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "mapless"
+TESTS = REPO / "tests"
+
+#: The team's data folder beside the repository, however it is spelled (joined at run time, so that
+#: this file does not name it itself).
+SHARED_SPELLINGS = (
+    "/".join(("..", "shared")),
+    "/".join(("", "work", "shared")),
+    str(REPO.parent / "shared"),
+)
+#: A quoted absolute, home or parent-relative path: whatever a test reads lives in the repository.
+OUTSIDE_PATH_LITERAL = re.compile(r"""["'`](?:/|~/|\.\./)\w""")
+#: ``Path(__file__)`` climbed with ``.parent`` / ``.parents[n]`` (counted against the file's depth).
+FILE_CLIMB = re.compile(
+    r"__file__\)(?:\.resolve\(\))?((?:\.parent\b)*)(?:\.parents\[(\d+)\])?((?:\.parent\b)*)"
+)
 
 
 def test_glove_tables_and_renamed_types():
@@ -146,11 +163,53 @@ def test_parent_reward_by_name_and_weights_agree():
     assert parent_reward_by_name({"Apple"}, parents, set()) == (0.0, set())
 
 
-def test_package_never_reads_the_shared_folder_and_data_has_provenance():
+def outside_references(data: bytes, depth: int) -> list[str]:
+    """What in a file's contents points outside the repository: the shared data folder, a quoted
+    absolute or parent-relative path, or ``__file__`` climbed more than ``depth`` folders (the
+    file's depth below the repository root). Binary files are checked for the folder names only."""
+    found = [spelling for spelling in SHARED_SPELLINGS if spelling.encode() in data]
+    try:
+        text = data.decode()
+    except UnicodeDecodeError:
+        return found
+    found += [match.group(0) for match in OUTSIDE_PATH_LITERAL.finditer(text)]
+    for match in FILE_CLIMB.finditer(text):
+        before, index, after = match.groups()
+        ups = before.count(".parent") + (int(index) + 1 if index else 0) + after.count(".parent")
+        if ups > depth:
+            found.append(match.group(0))
+    return found
+
+
+def test_the_outside_reference_check_finds_what_it_should():
+    file = "__file__" + ")"  # spelled apart, so that this file passes its own check
+    shared = SHARED_SPELLINGS[0]
+    assert outside_references(f"ROOT = Path({file}.resolve().parents[1].parent / 'shared'".encode(), 2)
+    assert outside_references(f"ROOT = Path({file}.parent.parent.parent".encode(), 2)
+    assert outside_references(f"SAMPLE = '{shared}/data/x.pkl'".encode(), 2)
+    assert outside_references(b'Path("' + b"/" + b'tmp/x").touch()', 2)
+    assert outside_references(b"\x80\x03" + shared.encode() + b"\xf0", 2)
+    assert not outside_references(f"Path({file}.resolve().parents[1] / 'mapless'".encode(), 2)
+    assert not outside_references(f"Path({file}.parent.parent.glob('experiments/*.yaml')".encode(), 2)
+    assert not outside_references(b"shared memory, shared_gcn_term, tmp_path / 'x.pkl'", 2)
+
+
+def test_package_and_tests_never_read_the_shared_folder_and_data_has_provenance():
     for folder in ("knowledge", "models"):
         for path in (PACKAGE / folder).glob("*.py"):
-            assert "/work/shared" not in path.read_text() and "../shared" not in path.read_text()
-    notice = (PACKAGE / "data" / "priors" / "NOTICE.md").read_text()
-    for path in (PACKAGE / "data" / "priors").iterdir():
-        if path.name != "NOTICE.md":
-            assert path.name in notice, path.name
+            assert not any(spelling in path.read_text() for spelling in SHARED_SPELLINGS), path
+    checked = 0
+    for path in sorted(TESTS.rglob("*")):
+        if path.is_file() and "__pycache__" not in path.parts:
+            found = outside_references(path.read_bytes(), depth=len(path.relative_to(REPO).parts))
+            assert not found, (path, found)
+            checked += 1
+    assert checked > 30 and (TESTS / "data" / "hoz_bathroom_val_22_sample.pkl").is_file()
+    for notice, folder in (
+        (PACKAGE / "data" / "priors" / "NOTICE.md", PACKAGE / "data" / "priors"),
+        (TESTS / "data" / "README.md", TESTS / "data"),
+    ):
+        text = notice.read_text()
+        for path in folder.iterdir():
+            if path != notice:
+                assert path.name in text, path.name
