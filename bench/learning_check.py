@@ -23,9 +23,10 @@ def random_success(config, episodes: int) -> tuple[float, float]:
     """Training success rate of the uniform random agent, and its binomial standard error."""
     import torch
 
+    from mapless.agent.acting import observation_keys
     from mapless.models import build_model
     from mapless.train.common import BuiltinLibrary, seed_for, training_env, training_sampler
-    from mapless.train.rollout import make_actor, observation_keys, run_batch
+    from mapless.train.rollout import make_actor, run_batch
 
     library = BuiltinLibrary(config)()
     batch = 64

@@ -19,9 +19,10 @@ import argparse
 import numpy as np
 import torch
 
+from mapless.agent.acting import observation_keys
 from mapless.train.checkpoint import load_model
 from mapless.train.common import BuiltinLibrary, training_env, training_sampler
-from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_batch
+from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 
 
 def main() -> None:

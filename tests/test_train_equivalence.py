@@ -13,6 +13,7 @@ import pytest
 import torch
 from train_fixtures import fixture_library, tiny_config
 
+from mapless.agent.acting import observation_keys
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.common import new_model, reward_config, target_fields, trainable, training_sampler
@@ -20,7 +21,6 @@ from mapless.train.rollout import (
     accumulate_gradients,
     episode_losses,
     make_actor,
-    observation_keys,
     run_batch,
     run_episode,
 )

@@ -73,7 +73,7 @@ class ModelAgent:
 
             keep_compiled_kernels()
         self.model = model.eval()
-        from mapless.train.rollout import observation_keys
+        from mapless.agent.acting import observation_keys
 
         # Gathering the feature map is the costly part of a step; skip it for models that ignore it.
         self.observation_keys = observation_keys(model)

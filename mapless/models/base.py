@@ -66,6 +66,10 @@ class ModelConfig:
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
         that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
+    target_context: cvmeta only: the target descriptor also reads the target category's own
+        context row ``[B, x_c, y_c, A_bbox]`` (``ψ(g, C_g; u)``), so "the target is in view, there, this
+        large" is one shared input instead of a rule learned per category from the CS column. Not in
+        the paper; off reproduces it (docs/model.md, "Target context").
     reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
         ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
         parameter counts and state-dict keys match the originals. They never affect outputs.
@@ -85,6 +89,7 @@ class ModelConfig:
     gcn_hidden: int | None = None
     reference_extras: bool = False
     adapt: str | None = None
+    target_context: bool = False
 
     def __post_init__(self) -> None:
         if self.adapt not in (None, *ADAPT_MODES):
@@ -346,6 +351,13 @@ def unit(x: Tensor, dim: int = -1, eps: float = 1e-12) -> Tensor:
 def target_similarity(target_embedding: Tensor, category_glove: Tensor) -> Tensor:
     """CS column: cosine between the target's GloVe ``[B, D]`` and every category's ``[C, D]`` -> ``[B, C]``."""
     return unit(target_embedding) @ unit(category_glove).T
+
+
+def target_row(context: Tensor, target_index: Tensor) -> Tensor:
+    """The target category's context row ``[B, 4]`` (zeros where ``target_index`` is -1)."""
+    index = target_index.clamp(min=0).view(-1, 1, 1).expand(-1, 1, context.shape[-1])
+    row = context.gather(1, index).squeeze(1)
+    return row * (target_index >= 0).to(row.dtype).unsqueeze(-1)
 
 
 def context_vector(obs: dict[str, Tensor], category_glove: Tensor) -> Tensor:

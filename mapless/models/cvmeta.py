@@ -39,6 +39,7 @@ from mapless.models.base import (
     pointwise_conv_of_parts,
     shared_gcn_term,
     shared_row_gcn_layer,
+    target_row,
 )
 from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LearnedLossMixin
@@ -64,6 +65,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.W1 = nn.Linear(hidden, hidden, bias=False)
         self.W2 = nn.Linear(hidden, EMBED, bias=False)
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
+        if config.target_context:
+            self.embed_target_context = nn.Linear(4, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
         self.dropout = Dropout(config.dropout)
@@ -90,7 +93,10 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         cv = context_vector(obs, self.all_glove)  # [B, C, 5]
         context = self.dropout(F.relu(pointwise_conv(self.context_embed, cv.transpose(1, 2))))
         graph = self.graph_descriptor(obs["context"][..., 0])
-        target = F.relu(self.embed_glove(obs["target_embedding"]))
+        target = self.embed_glove(obs["target_embedding"])
+        if self.config.target_context:
+            target = target + self.embed_target_context(target_row(obs["context"], obs["target_index"]))
+        target = F.relu(target)
         return {"context": context, "graph": graph, "target": target}
 
     def encode(

@@ -11,6 +11,7 @@ from mapless.models.base import ModelConfig, NavModel
 from mapless.models.cvmeta import ContextVectorMetaModel
 from mapless.models.graph_models import GveModel, ScenePriorsModel
 from mapless.models.mjolnir import MjolnirObjectModel, MjolnirResnetModel
+from mapless.models.mlp import MlpModel
 from mapless.models.spatt import SpattModel
 from mapless.models.uniform import RandomModel
 
@@ -24,6 +25,7 @@ MODELS: dict[str, type[NavModel]] = {
     "mjolnir_o": MjolnirObjectModel,
     "mjolnir_r": MjolnirResnetModel,
     "cvmeta": ContextVectorMetaModel,
+    "mlp": MlpModel,
 }
 
 

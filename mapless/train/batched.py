@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapless.agent.acting import observation_keys
 from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.common import (
@@ -39,13 +40,15 @@ from mapless.train.common import (
 from mapless.train.config import TrainConfig
 from mapless.train.monitor import RunMonitor
 from mapless.train.optim import SharedAdam
-from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_batch
+from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 
 #: Rows of the per-episode statistics exchanged between ranks.
 _EPISODE_ROWS = ("success", "spl", "length", "reward")
 
 
 class BatchedTrainer:
+    label = "batched"  # the progress bar's name for the trainer
+
     def __init__(
         self,
         config: TrainConfig,
@@ -157,7 +160,7 @@ class BatchedTrainer:
         """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
         cfg = self.config
         self._setup(resume)
-        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "batched")
+        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, self.label)
         start, start_frames = time.perf_counter(), self.counters["frames"]
         self._clock, self._out_of_time = start, False
         first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)
@@ -182,7 +185,6 @@ class BatchedTrainer:
 
     def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
         """Merge statistics over ranks, advance counters, log and checkpoint. Returns True to stop."""
-        cfg = self.config
         traj, losses = result["trajectory"], result["losses"]
         rows = torch.tensor(
             np.stack([traj.success, traj.spl(), traj.length, traj.total_reward()]), dtype=torch.float64
@@ -198,16 +200,12 @@ class BatchedTrainer:
                 float(n),
                 float(traj.frames),
                 float(stop_requested),
-                float(cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds),
+                self._out_of_time_here(),
             ],
             dtype=torch.float64,
         )
         totals = dist.all_reduce_sum(totals, self.ctx)
         episodes, frames = int(totals[4]), int(totals[5])
-        before = self.counters["episodes"]
-        self.counters["episodes"] += episodes
-        self.counters["frames"] += frames
-        self.counters["updates"] += 1
         monitor.add_episodes(*(rows[i].numpy() for i in range(len(_EPISODE_ROWS))))
         monitor.add_losses(
             float(totals[0] / episodes),
@@ -217,12 +215,28 @@ class BatchedTrainer:
             grad_norm=result["grad_norm"],  # of the all-reduced gradient: the same on every rank
             count=episodes,
         )
+        return self._advance(monitor, episodes, frames, bool(totals[6] > 0), bool(totals[7] > 0))
+
+    def _out_of_time_here(self) -> float:
+        """1.0 when this rank's clock passed ``max_seconds`` (agreed over ranks by the caller)."""
+        cfg = self.config
+        return float(cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds)
+
+    def _advance(
+        self, monitor: RunMonitor, episodes: int, frames: int, stop_requested: bool, out_of_time: bool
+    ) -> bool:
+        """Advance the counters by an update's totals over all ranks, log, checkpoint on schedule.
+        Returns True to stop."""
+        before = self.counters["episodes"]
+        self.counters["episodes"] += episodes
+        self.counters["frames"] += frames
+        self.counters["updates"] += 1
         monitor.advance(self.counters["episodes"], self.counters["frames"])
         every = self.config.checkpoint_every
         self._snapshot_due = self.counters["episodes"] // every > before // every
-        if totals[6] > 0:
+        if stop_requested:
             return True
-        self._out_of_time = bool(totals[7] > 0)
+        self._out_of_time = out_of_time
         if self._snapshot_due and not self._budget_reached():
             self._checkpoint()
         return False

@@ -8,6 +8,7 @@ loaded or any worker is started.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -131,9 +132,66 @@ class MetaConfig:
 
 
 @dataclass(frozen=True)
+class PPOConfig:
+    """Recurrent PPO (``algo: ppo``), CleanRL's constants by default.
+
+    envs: environment slots stepped together (per rank); adaptive models play ``envs`` whole
+        episodes per update instead of segments.
+    steps: segment length (non-adaptive models; adaptive ones run to the episodes' end).
+    epochs, minibatches: passes over each batch of experience, and minibatches per pass (each a
+        set of whole slot sequences, so the recurrent state is replayed from the segment's start).
+    lr, adam_eps: Adam (``torch.optim.Adam``); ``lr_decay`` anneals lr linearly to 0 over the budget.
+    clip: surrogate clip ε; value_clip: clip of the value change (0 = off).
+    entropy_coef, value_coef: loss weights; max_grad_norm: gradient-norm clip (0 = off).
+    gamma, lam: discount and GAE λ; normalize_advantages: per minibatch.
+    """
+
+    envs: int = 64
+    steps: int = 32
+    epochs: int = 4
+    minibatches: int = 4
+    lr: float = 3e-4
+    adam_eps: float = 1e-5
+    lr_decay: bool = False
+    clip: float = 0.2
+    value_clip: float = 0.0
+    entropy_coef: float = 0.01
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    gamma: float = 0.99
+    lam: float = 0.95
+    normalize_advantages: bool = True
+
+    def __post_init__(self) -> None:
+        for key in ("envs", "steps", "epochs", "minibatches"):
+            _require(getattr(self, key) >= 1, f"ppo.{key}", f"must be >= 1, got {getattr(self, key)}")
+        _require(
+            self.minibatches <= self.envs,
+            "ppo.minibatches",
+            f"{self.minibatches} minibatches of whole slot sequences need at least as many slots "
+            f"(ppo.envs = {self.envs})",
+        )
+        for key in ("lr", "adam_eps"):
+            _require(
+                _finite(getattr(self, key)) and getattr(self, key) > 0, f"ppo.{key}", "must be finite and > 0"
+            )
+        for key in ("clip", "value_clip", "entropy_coef", "value_coef", "max_grad_norm"):
+            value = getattr(self, key)
+            _require(_finite(value) and value >= 0, f"ppo.{key}", f"must be finite and >= 0, got {value}")
+        _require(0 < self.gamma <= 1, "ppo.gamma", f"must lie in (0, 1], got {self.gamma}")
+        _require(0 <= self.lam <= 1, "ppo.lam", f"must lie in [0, 1], got {self.lam}")
+
+
+def _finite(value: float) -> bool:
+    return math.isfinite(value)
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """A training run.
 
+    algo: ``ppo`` (recurrent PPO, :class:`PPOConfig`; batched mode) or ``a3c`` (the references'
+        recipe: one A3C step per batch of whole episodes, or per episode in async mode).
     mode: ``batched`` (B episodes in lockstep, one update per batch) or ``async`` (the references'
         Hogwild A3C: ``workers`` processes, one update per episode, shared AMSGrad Adam).
     batch_size: episodes per update in batched mode (per rank under torchrun).
@@ -160,6 +218,8 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     meta: MetaConfig = field(default_factory=MetaConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    algo: Literal["a3c", "ppo"] = "a3c"
     mode: Literal["batched", "async"] = "batched"
     batch_size: int = 32
     workers: int = 2
@@ -191,6 +251,12 @@ class TrainConfig:
             self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
         )
         _require(self.mode in ("batched", "async"), "mode", f"must be batched or async, got {self.mode!r}")
+        _require(self.algo in ("a3c", "ppo"), "algo", f"must be a3c or ppo, got {self.algo!r}")
+        _require(
+            self.algo == "a3c" or self.mode == "batched",
+            "algo",
+            "ppo runs in batched mode (the Hogwild async mode is the references' A3C)",
+        )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
+from mapless.agent.acting import observation_keys
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
 from mapless.train import checkpoint as ckpt
@@ -53,7 +54,7 @@ from mapless.train.common import (
 from mapless.train.config import TrainConfig
 from mapless.train.monitor import RunMonitor
 from mapless.train.optim import SharedAdam
-from mapless.train.rollout import accumulate_gradients, make_actor, observation_keys, run_episode
+from mapless.train.rollout import accumulate_gradients, make_actor, run_episode
 
 POLL_SECONDS = 0.2
 JOIN_SECONDS = 10.0

@@ -130,6 +130,11 @@ class RunMonitor:
         ):
             self._window.setdefault(key, []).extend([float(value_)] * count)
 
+    def add_scalars(self, values: dict[str, float], count: int = 1) -> None:
+        """Further per-update scalars (PPO's approximate KL, clip fraction, ...), weighted by ``count``."""
+        for key, value in values.items():
+            self._window.setdefault(key, []).extend([float(value)] * count)
+
     @property
     def running_success(self) -> float:
         return float(np.mean(self._running)) if self._running else 0.0

@@ -12,6 +12,7 @@ from mapless.train.batched import BatchedTrainer
 from mapless.train.common import LibraryFactory, prepare_scenes
 from mapless.train.config import TrainConfig
 from mapless.train.hogwild import AsyncTrainer
+from mapless.train.ppo import PPOTrainer
 
 
 def default_run_dir(config: TrainConfig, root: str | Path = "runs", label: str = "") -> Path:
@@ -59,6 +60,7 @@ def train(
         dist.barrier(ctx)
         if config.mode == "async":
             return AsyncTrainer(config, run_dir, library_factory).run(resume)
-        return BatchedTrainer(config, run_dir, library_factory, ctx).run(resume)
+        trainer = PPOTrainer if config.algo == "ppo" else BatchedTrainer
+        return trainer(config, run_dir, library_factory, ctx).run(resume)
     finally:
         dist.shutdown(ctx)

@@ -1,0 +1,67 @@
+"""Acting with a policy: which observation keys a model reads, numpy observations to tensors, and
+reproducible action sampling. Shared by training (both algorithms) and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mapless.models.base import NUM_ACTIONS, NavModel
+
+OBS_KEYS = ("context", "features", "target_embedding", "target_index")
+
+
+class _RecordingObs(dict):
+    """A dict that remembers which keys were read."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.read: set[str] = set()
+
+    def __getitem__(self, key: str):
+        self.read.add(key)
+        return super().__getitem__(key)
+
+
+def observation_keys(model: NavModel) -> tuple[str, ...]:
+    """The observation keys ``model`` reads, found by one probe forward pass on zeros.
+
+    Gathering the 7x7 feature map is the costliest part of a batched environment step, and several
+    models (cvmeta, mjolnir_o) never read it, so the environment is asked only for what is used.
+    """
+    c = model.num_categories
+    probe = _RecordingObs(
+        context=torch.zeros(1, c, 4),
+        features=torch.zeros(1, model.feature_channels, 7, 7),
+        target_embedding=torch.zeros(1, model.glove_dim),
+        target_index=torch.zeros(1, dtype=torch.long),
+    )
+    device = next((p.device for p in model.parameters()), torch.device("cpu"))
+    probe = _RecordingObs({k: v.to(device) for k, v in probe.items()})
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        model(probe, model.initial_state(1, device), torch.zeros(1, NUM_ACTIONS, device=device))
+    model.train(was_training)
+    return tuple(k for k in OBS_KEYS if k in probe.read)
+
+
+def to_tensors(obs: dict[str, np.ndarray], device: torch.device, batch: bool = True) -> dict[str, Tensor]:
+    """Numpy observations -> tensors on ``device`` (``batch=False`` adds the batch dimension)."""
+    out = {}
+    for key, value in obs.items():
+        array = np.asarray(value)
+        if not array.flags.writeable:  # NavEnv hands out read-only views of cached arrays
+            array = array.copy()
+        tensor = torch.from_numpy(array)
+        out[key] = (tensor if batch else tensor.unsqueeze(0)).to(device, non_blocking=True)
+    return out
+
+
+def sample_actions(logits: Tensor, noise: Tensor) -> Tensor:
+    """Inverse-CDF sample of the softmax policy with one uniform number per row (same law as
+    ``multinomial``, but reproducible per episode whatever the batch)."""
+    cdf = torch.softmax(logits.detach(), dim=-1).cumsum(-1)
+    action = (cdf < noise.unsqueeze(-1)).sum(-1)
+    return action.clamp(max=logits.shape[-1] - 1)  # rounding can leave cdf[-1] a hair below 1

@@ -1,0 +1,51 @@
+"""``mlp``: a small recurrent policy over the context vectors, a sanity baseline (not one of the
+paper's models). It shows what the observations alone support at a fraction of the cost.
+
+Inputs (docs/observations.md): the context rows of every category flattened (C x 4), the GloVe
+cosine of every category to the target (C), and the target's own context row (4, zeros when the
+target is not a category), plus the previous policy (6). Two 256-wide ReLU layers, an LSTMCell(256),
+actor and critic on h.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapless.knowledge import Knowledge
+from mapless.models.base import (
+    NUM_ACTIONS,
+    ModelConfig,
+    RecurrentNavModel,
+    init_heads_and_lstm,
+    target_row,
+    target_similarity,
+)
+
+WIDTH = 256
+
+
+class MlpModel(RecurrentNavModel):
+    description = "sanity baseline: MLP over the context rows + target row + GloVe cosines -> LSTM(256)"
+
+    def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
+        super().__init__(config, knowledge)
+        self.hidden_size = WIDTH
+        c = self.num_categories
+        self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
+        self.layer1 = nn.Linear(c * 4 + c + 4 + NUM_ACTIONS, WIDTH)
+        self.layer2 = nn.Linear(WIDTH, WIDTH)
+        self.lstm = nn.LSTMCell(WIDTH, WIDTH)
+        self.actor_linear = nn.Linear(WIDTH, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(WIDTH, 1)
+        init_heads_and_lstm(self)
+
+    def encode(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
+        context = obs["context"]
+        similarity = target_similarity(obs["target_embedding"], self.all_glove)
+        own = target_row(context, obs["target_index"])
+        x = torch.cat([context.flatten(1), similarity, own, prev_policy], dim=1)
+        return F.relu(self.layer2(F.relu(self.layer1(x)))), None

@@ -1,0 +1,233 @@
+"""The PPO trainer (``algo: ppo``): recurrent PPO over the batched environment, CleanRL's recipe.
+
+Per update::
+
+    segment = collector.collect(ppo.steps)         # N slots; finished slots take new episodes
+    advantages, returns = gae(segment)             # bootstrapped at segment ends and truncations
+    repeat ppo.epochs times:
+        for each of ppo.minibatches sets of whole slot sequences:
+            logits, values = replay(set)           # from the segment's first step, same recurrent state
+            loss = clipped surrogate + value_coef * value loss - entropy_coef * entropy
+            backward, all-reduce over ranks, clip, Adam step
+
+Adaptive models (savn, gve, spatt, cvmeta) play whole episodes and replay each one through the
+meta-learning inner loop (:class:`~mapless.train.meta.InnerLoop`), recomputed in every minibatch from
+the current parameters: the first k steps interact, the rest act with the weights adapted on the
+learned interaction loss, and the meta-gradient (second order, or first order with ``meta.first_order``)
+flows through the adaptation. The probability ratio is that of the adapted policy against the
+adapted policy that acted.
+
+PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
+that acted with the same function under new parameters. The run folder, checkpoints, budget, logs
+and graceful stop are the batched trainer's (:class:`~mapless.train.batched.BatchedTrainer`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mapless.agent.acting import observation_keys
+from mapless.agent.sequence import replay_segment
+from mapless.models.memo import InViewMemo
+from mapless.train import distributed as dist
+from mapless.train.batched import BatchedTrainer
+from mapless.train.common import (
+    configure_torch,
+    new_model,
+    seed_for,
+    trainable,
+    training_env,
+    training_sampler,
+)
+from mapless.train.meta import InnerLoop
+from mapless.train.monitor import RunMonitor
+from mapless.train.ppo_loss import PPOLoss, gae, ppo_loss
+from mapless.train.segments import Segment, SegmentCollector
+
+_EPISODE_ROWS = ("success", "spl", "length", "reward")
+_LOSS_KEYS = ("total", "policy", "value", "entropy", "approx_kl", "clip_fraction")
+
+
+class PPOTrainer(BatchedTrainer):
+    label = "ppo"
+
+    def _setup(self, resume: dict | None) -> None:
+        cfg, rank = self.config, self.ctx.rank
+        configure_torch(cfg.threads)
+        torch.manual_seed(seed_for(cfg, rank))
+        self.rng = np.random.default_rng(seed_for(cfg, 10_000 + rank))
+        self.model = new_model(cfg, self.device).eval()  # dropout off: see the module docstring
+        self.params = trainable(self.model)
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.ppo.lr, eps=cfg.ppo.adam_eps)
+        self.obs_keys = observation_keys(self.model)
+        library = self.library_factory()
+        self.sampler = training_sampler(cfg, library, seed_for(cfg, 20_000 + rank))
+        self.env = training_env(cfg, library, cfg.ppo.envs)
+        adaptive = self.model.adaptive
+        self.collector = SegmentCollector(
+            self.model, self.env, self.sampler, self.obs_keys, self.device, whole_episodes=adaptive
+        )
+        self.inner = InnerLoop(self.model, first_order=cfg.meta.first_order) if adaptive else None
+        if resume is not None:
+            self._restore(resume)
+        else:
+            dist.broadcast_parameters(self.params, self.ctx)
+
+    def _rng_state(self) -> dict:
+        return {**super()._rng_state(), "collector": self.collector.state_dict()}
+
+    def _restore(self, state: dict) -> None:
+        super()._restore(state)
+        rngs = state.get("rng", [])
+        if self.ctx.rank < len(rngs) and "collector" in rngs[self.ctx.rank]:
+            self.collector.load_state_dict(rngs[self.ctx.rank]["collector"])
+
+    # -- one update ------------------------------------------------------------------------------
+    def update(self) -> dict[str, Any]:
+        cfg, ppo = self.config, self.config.ppo
+        segment = self.collector.collect(cfg.env.max_steps if self.inner is not None else ppo.steps, self.rng)
+        advantages, returns = gae(
+            segment.rewards,
+            segment.values,
+            segment.next_value,
+            segment.terminated,
+            segment.truncated,
+            segment.bootstrap,
+            ppo.gamma,
+            ppo.lam,
+        )
+        lr = self._learning_rate()
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        sums = dict.fromkeys(_LOSS_KEYS, 0.0)
+        grad_norms = []
+        slots = segment.mask.shape[1]
+        for _ in range(ppo.epochs):
+            order = torch.from_numpy(self.rng.permutation(slots)).to(self.device)
+            for minibatch in order.chunk(ppo.minibatches):
+                loss = self._minibatch_step(segment, minibatch, advantages, returns)
+                grad_norms.append(self._step())
+                for key in _LOSS_KEYS:
+                    sums[key] += float(getattr(loss, key))
+        passes = ppo.epochs * ppo.minibatches
+        mask = segment.mask > 0
+        residual = (returns - segment.values)[mask]
+        variance = returns[mask].var() if mask.sum() > 1 else returns.new_ones(())
+        explained = float(1.0 - residual.var() / variance) if variance > 0 else 0.0
+        return {
+            "segment": segment,
+            "losses": {key: value / passes for key, value in sums.items()},
+            "grad_norm": float(np.mean(grad_norms)),
+            "scalars": {"ppo/explained_variance": explained, "ppo/lr": lr},
+        }
+
+    def _learning_rate(self) -> float:
+        cfg = self.config
+        if not cfg.ppo.lr_decay:
+            return cfg.ppo.lr
+        if cfg.frames > 0:
+            done = self.counters["frames"] / cfg.frames
+        else:
+            done = self.counters["episodes"] / cfg.episodes
+        return cfg.ppo.lr * max(1.0 - done, 0.0)
+
+    def _minibatch_step(
+        self, segment: Segment, columns: Tensor, advantages: Tensor, returns: Tensor
+    ) -> PPOLoss:
+        """Replay the slots ``columns`` with the current parameters and backpropagate PPO's loss."""
+        ppo = self.config.ppo
+        self.optimizer.zero_grad(set_to_none=True)
+        mask = segment.mask[:, columns]
+        advantage = advantages[:, columns]
+        if ppo.normalize_advantages:
+            valid = advantage[mask > 0]
+            advantage = (advantage - valid.mean()) / (valid.std(unbiased=False) + 1e-8)
+        with self.model.memoizing_in_view(InViewMemo(max_rows=None)):
+            if self.inner is None:
+                obs = {k: v[:, columns] for k, v in segment.obs.items()}
+                hidden = tuple(t.index_select(0, columns) for t in segment.hidden)
+                starts = segment.starts[:, columns]
+                logits, values = replay_segment(
+                    self.model, obs, segment.prev_policy[:, columns], starts, hidden
+                )
+                state = None
+            else:
+                logits, values, state = self._replay_episodes(segment, columns)
+        steps = logits.shape[0]
+        loss = ppo_loss(
+            logits,
+            values,
+            segment.actions[:steps, columns],
+            segment.log_prob[:steps, columns],
+            segment.values[:steps, columns],
+            advantage[:steps],
+            returns[:steps, columns],
+            mask[:steps],
+            clip=ppo.clip,
+            value_clip=ppo.value_clip,
+            value_coef=ppo.value_coef,
+            entropy_coef=ppo.entropy_coef,
+        )
+        if state is None:
+            loss.total.backward()
+        else:
+            self.inner.backward(state, loss.total)
+        return PPOLoss(*(t.detach() for t in loss))
+
+    def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
+        """Whole episodes through the meta-learning inner loop, adapted from the current parameters."""
+        mask = segment.mask[:, columns]
+        steps = int(mask.sum(0).max())
+        state = self.inner.start(len(columns))
+        hidden = self.model.initial_state(len(columns), self.device)
+        logits, values = [], []
+        for t in range(steps):
+            obs = {k: v[t].index_select(0, columns) for k, v in segment.obs.items()}
+            out = self.inner.forward(state, obs, hidden, segment.prev_policy[t].index_select(0, columns))
+            alive = mask[t + 1] > 0 if t + 1 < mask.shape[0] else torch.zeros_like(mask[t], dtype=torch.bool)
+            self.inner.observe(state, out, alive)
+            hidden = out.hidden
+            logits.append(out.logits)
+            values.append(out.value.reshape(-1))
+        return torch.stack(logits), torch.stack(values), state
+
+    def _step(self) -> float:
+        dist.all_reduce_gradients(self.params, self.ctx)
+        params = [p for p in self.params if p.grad is not None]
+        norm = torch.nn.utils.get_total_norm([p.grad for p in params])
+        if self.config.ppo.max_grad_norm > 0:
+            torch.nn.utils.clip_grads_with_norm_(params, self.config.ppo.max_grad_norm, norm)
+        self.optimizer.step()
+        return float(norm)
+
+    # -- statistics ------------------------------------------------------------------------------
+    def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
+        segment: Segment = result["segment"]
+        finished = dist.gather_objects(segment.finished, self.ctx)
+        rows = {key: np.concatenate([f[key] for f in finished]) for key in _EPISODE_ROWS}
+        totals = dist.all_reduce_sum(
+            torch.tensor(
+                [float(segment.frames), float(stop_requested), self._out_of_time_here()], dtype=torch.float64
+            ),
+            self.ctx,
+        )
+        episodes = len(rows["success"])
+        losses = result["losses"]
+        count = max(episodes, 1)
+        monitor.add_episodes(*(rows[key] for key in _EPISODE_ROWS))
+        monitor.add_losses(
+            losses["total"], losses["policy"], losses["value"], losses["entropy"], result["grad_norm"], count
+        )
+        monitor.add_scalars(
+            {
+                "ppo/approx_kl": losses["approx_kl"],
+                "ppo/clip_fraction": losses["clip_fraction"],
+                **result["scalars"],
+            },
+            count,
+        )
+        return self._advance(monitor, episodes, int(totals[0]), bool(totals[1] > 0), bool(totals[2] > 0))

@@ -1,0 +1,278 @@
+"""Collecting PPO experience from the batched environment.
+
+Two layouts, one :class:`Segment` type:
+
+* **segments** (non-adaptive models): ``N`` environment slots step for ``T`` steps; a slot whose
+  episode ends takes a new one at once (no slot idles), the recurrent state is zeroed at episode
+  starts and carried across segments, and time-limit truncations are bootstrapped with the value of
+  the state the episode was cut in.
+* **whole episodes** (adaptive models): ``N`` episodes start together and run to their end
+  (``T`` = the training step limit), acting with SAVN's inner loop at its test-time setting: every
+  ``k`` steps one SGD step of the episode's own fast weights on the learned interaction loss. An
+  episode's adaptation state cannot be carried across a segment boundary into a replay, so each
+  replay starts at the episode's first step (docs/training.md, "PPO"). As in the references, the
+  30-step limit is not bootstrapped there.
+
+Actions are drawn by inverse CDF from uniforms of the trainer's numpy generator, so a run is
+reproducible from its seed and its checkpoint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from mapless.agent.acting import sample_actions, to_tensors
+from mapless.episodes.episode import Episode
+from mapless.episodes.sampler import TrainingSampler
+from mapless.evaluate.metrics import spl
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
+from mapless.models.memo import InViewMemo
+from mapless.sim.vector import BatchedNavEnv
+
+
+@dataclass
+class Segment:
+    """``T`` steps of ``N`` slots (``[T, N, ...]``), everything a PPO update needs."""
+
+    obs: dict[str, Tensor]
+    prev_policy: Tensor  # [T, N, 6] the previous policy each step was given
+    starts: Tensor  # [T, N] bool: the step opened an episode
+    actions: Tensor
+    log_prob: Tensor
+    values: Tensor
+    rewards: Tensor
+    terminated: Tensor  # [T, N] bool
+    truncated: Tensor  # [T, N] bool
+    bootstrap: Tensor  # [T, N] V(s_{t+1}) of truncated steps, 0 elsewhere
+    mask: Tensor  # [T, N] 1 where the slot took a step (whole episodes: 0 after the end)
+    hidden: tuple[Tensor, Tensor]  # [N, H] before the first step
+    next_value: Tensor  # [N] V after the last step (0 where the episode ended)
+    finished: dict[str, np.ndarray]  # success, spl, length, reward of the episodes that ended
+
+    @property
+    def frames(self) -> int:
+        return int(self.mask.sum())
+
+
+_RECORDED = (
+    "obs",
+    "prev_policy",
+    "starts",
+    "actions",
+    "log_prob",
+    "values",
+    "rewards",
+    "terminated",
+    "truncated",
+    "bootstrap",
+    "mask",
+)
+
+
+def _finished_rows(rows: list[tuple[bool, float, int, float]]) -> dict[str, np.ndarray]:
+    array = np.array(rows, dtype=np.float64).reshape(-1, 4)
+    return {key: array[:, i] for i, key in enumerate(("success", "spl", "length", "reward"))}
+
+
+class SegmentCollector:
+    """Steps ``env`` (``N`` slots) with a model, refilling finished slots from ``sampler``."""
+
+    def __init__(
+        self,
+        model: NavModel,
+        env: BatchedNavEnv,
+        sampler: TrainingSampler,
+        obs_keys: tuple[str, ...],
+        device: torch.device,
+        whole_episodes: bool,
+    ):
+        self.model, self.env, self.sampler = model, env, sampler
+        self.obs_keys, self.device = obs_keys, device
+        self.whole_episodes = whole_episodes
+        n = env.batch_size
+        self.hidden = model.initial_state(n, device)
+        self.prev_policy = torch.zeros(n, NUM_ACTIONS, device=device)
+        self.reward_sum = np.zeros(n)
+        self.needs_episode = np.ones(n, dtype=bool)
+
+    # -- resumable state ---------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The slots' episodes in flight (plain data and tensors, for a weights-only checkpoint)."""
+        env = self.env
+        return {
+            "episodes": [e.to_dict() if e is not None else None for e in env.episodes],
+            "pose": torch.as_tensor(env.pose),
+            "steps": torch.as_tensor(env.steps),
+            "done": torch.as_tensor(env.done),
+            "seen_parents": torch.as_tensor(env.seen_parents),
+            "hidden": [t.cpu() for t in self.hidden],
+            "prev_policy": self.prev_policy.cpu(),
+            "reward_sum": torch.as_tensor(self.reward_sum),
+            "needs_episode": torch.as_tensor(self.needs_episode),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        env = self.env
+        for slot, episode in enumerate(state["episodes"]):
+            if episode is not None:
+                env.reset([slot], [Episode.from_dict(episode)])
+        env.pose[:] = state["pose"].numpy()
+        env.steps[:] = state["steps"].numpy()
+        env.done[:] = state["done"].numpy()
+        env.seen_parents[:] = state["seen_parents"].numpy()
+        self.hidden = tuple(t.to(self.device) for t in state["hidden"])
+        self.prev_policy = state["prev_policy"].to(self.device)
+        self.reward_sum = state["reward_sum"].numpy().copy()
+        self.needs_episode = state["needs_episode"].numpy().copy()
+
+    # -- collection ------------------------------------------------------------------------------
+    def _start_episodes(self, slots: np.ndarray, rng: np.random.Generator) -> None:
+        self.env.reset(slots, [self.sampler.sample(rng) for _ in slots])
+        index = torch.as_tensor(slots, device=self.device)
+        self.hidden = tuple(t.index_fill(0, index, 0.0) for t in self.hidden)
+        self.prev_policy = self.prev_policy.index_fill(0, index, 0.0)
+        self.reward_sum[slots] = 0.0
+        self.needs_episode[slots] = False
+
+    def collect(self, steps: int, rng: np.random.Generator) -> Segment:
+        """Act for ``steps`` steps (whole episodes: until every episode ended, at most ``steps``)."""
+        n = self.env.batch_size
+        if self.whole_episodes:
+            self.needs_episode[:] = True
+        memo = InViewMemo(max_rows=None)
+        actor = _AdaptingActor(self.model, n) if self.whole_episodes else None
+        h0 = tuple(t.clone() for t in self.hidden)
+        record: dict[str, list] = {k: [] for k in _RECORDED}
+        finished: list[tuple[bool, float, int, float]] = []
+        try:
+            next_value = self._run(steps, rng, actor, memo, record, finished)
+        finally:
+            if actor is not None:
+                actor.close()
+        stacked = {
+            "obs": {k: torch.stack([o[k] for o in record["obs"]]) for k in record["obs"][0]},
+            **{k: torch.stack(v) for k, v in record.items() if k != "obs"},
+        }
+        return Segment(**stacked, hidden=h0, next_value=next_value, finished=_finished_rows(finished))
+
+    def _run(
+        self,
+        steps: int,
+        rng: np.random.Generator,
+        actor: _AdaptingActor | None,
+        memo: InViewMemo,
+        record: dict[str, list],
+        finished: list,
+    ) -> Tensor:
+        """The acting loop of :meth:`collect`; returns V after the last step."""
+        model, env, device = self.model, self.env, self.device
+        n = env.batch_size
+        cut_is_end = self.whole_episodes
+        for _ in range(steps):
+            starts = self.needs_episode.copy()
+            if starts.any():
+                self._start_episodes(np.flatnonzero(starts), rng)
+            active_before = ~env.done
+            obs = to_tensors(env.observe(self.obs_keys), device)
+            with model.memoizing_in_view(memo):
+                out = actor.forward(obs, self.hidden, self.prev_policy) if actor else self._forward(obs)
+            logits = out.logits.detach()
+            noise = torch.as_tensor(rng.random(n), dtype=torch.float32, device=device)
+            action = sample_actions(logits, noise)
+            step = env.step(action.cpu().numpy())
+            bootstrap = torch.zeros(n, device=device)
+            hidden = tuple(t.detach() for t in out.hidden)
+            policy = torch.softmax(logits, dim=-1)
+            if actor is not None:
+                actor.observe(out, torch.as_tensor(~env.done, device=device))
+            elif step.truncated.any():
+                bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(
+                    step.truncated, hidden, policy, memo
+                )
+            self.reward_sum += step.reward
+            for slot in np.flatnonzero(step.terminated | step.truncated):
+                length = int(env.steps[slot])
+                success = bool(step.success[slot])
+                finished.append(
+                    (
+                        success,
+                        spl(success, length, int(env.optimal_length[slot])),
+                        length,
+                        self.reward_sum[slot],
+                    )
+                )
+            for key, value in (
+                ("obs", obs),
+                ("prev_policy", self.prev_policy),
+                ("starts", torch.as_tensor(starts, device=device)),
+                ("actions", action),
+                ("log_prob", F.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)),
+                ("values", out.value.detach().reshape(n)),
+                ("rewards", torch.as_tensor(step.reward, device=device)),
+                # whole episodes: the references' R = 0 at the step limit, so a truncation is an end
+                (
+                    "terminated",
+                    torch.as_tensor(step.terminated | (step.truncated & cut_is_end), device=device),
+                ),
+                ("truncated", torch.as_tensor(step.truncated & ~cut_is_end, device=device)),
+                ("bootstrap", bootstrap),
+                ("mask", torch.as_tensor(active_before, dtype=torch.float32, device=device)),
+            ):
+                record[key].append(value)
+            self.hidden, self.prev_policy = hidden, policy
+            if self.whole_episodes:
+                if env.done.all():
+                    break
+            else:
+                self.needs_episode |= step.terminated | step.truncated
+        if self.whole_episodes:
+            return torch.zeros(n, device=device)
+        obs = to_tensors(env.observe(self.obs_keys), device)
+        with torch.no_grad(), model.memoizing_in_view(memo):
+            return model(obs, self.hidden, self.prev_policy).value.reshape(n)
+
+    def _forward(self, obs: dict[str, Tensor]) -> ModelOutput:
+        with torch.no_grad():
+            return self.model(obs, self.hidden, self.prev_policy)
+
+    def _values_after(
+        self, slots: np.ndarray, hidden: tuple[Tensor, Tensor], policy: Tensor, memo: InViewMemo
+    ) -> Tensor:
+        """V of the states the truncated episodes in ``slots`` were cut in."""
+        index = torch.as_tensor(np.flatnonzero(slots), device=self.device)
+        obs = to_tensors(self.env.observe(self.obs_keys), self.device)
+        obs = {k: v.index_select(0, index) for k, v in obs.items()}
+        rows = tuple(t.index_select(0, index) for t in hidden)
+        with torch.no_grad(), self.model.memoizing_in_view(memo):
+            return self.model(obs, rows, policy.index_select(0, index)).value.reshape(-1)
+
+
+class _AdaptingActor:
+    """Acting with SAVN's inner loop at its test-time setting (fast weights adapted in place)."""
+
+    def __init__(self, model: NavModel, batch: int):
+        from mapless.train.meta import InnerLoop
+
+        self.loop = InnerLoop(model, meta_train=False)
+        # θ stays fixed while acting; only the per-episode fast copies take inner gradients.
+        self.params = [p for p in model.parameters() if p.requires_grad]
+        for p in self.params:
+            p.requires_grad_(False)
+        self.state = self.loop.start(batch)
+
+    def close(self) -> None:
+        for p in self.params:
+            p.requires_grad_(True)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        return self.loop.forward(self.state, obs, hidden, prev_policy)
+
+    def observe(self, output: ModelOutput, alive: Tensor) -> None:
+        self.loop.observe(self.state, output, alive)

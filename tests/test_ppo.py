@@ -1,0 +1,195 @@
+"""PPO (``algo: ppo``): GAE and the clipped objective against hand computations, the segment replay
+against step-by-step forwards, the adaptive replay's meta-gradient against per-episode ones, and
+exact resume of a PPO run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from train_fixtures import fixture_library, tiny_config
+
+from mapless.agent.sequence import replay_segment
+from mapless.config import ConfigError
+from mapless.models import build_model
+from mapless.train import checkpoint as ckpt
+from mapless.train.ppo import PPOTrainer
+from mapless.train.ppo_loss import gae, ppo_loss
+from mapless.train.run import resume_config, train
+
+
+def test_gae_with_a_termination_and_a_truncation_inside_one_segment() -> None:
+    # One slot, 5 steps: episode A ends by Done at t=1, episode B is cut by the time limit at t=3
+    # (V of the state it was cut in: 2.0), episode C goes on past the segment (V after it: 4.0).
+    rewards = torch.tensor([[1.0], [5.0], [-0.5], [0.25], [1.0]])
+    values = torch.tensor([[0.5], [1.0], [0.2], [0.3], [0.6]])
+    terminated = torch.tensor([[False], [True], [False], [False], [False]])
+    truncated = torch.tensor([[False], [False], [False], [True], [False]])
+    bootstrap = torch.tensor([[0.0], [0.0], [0.0], [2.0], [0.0]])
+    gamma, lam = 0.9, 0.5
+    advantages, returns = gae(
+        rewards, values, torch.tensor([4.0]), terminated, truncated, bootstrap, gamma, lam
+    )
+    # By hand, backwards. t=4: δ = 1 + 0.9*4.0 - 0.6 = 4.0, A = 4.0
+    # t=3 (truncated): δ = 0.25 + 0.9*2.0 - 0.3 = 1.75; A = 1.75 (no carry over the end)
+    # t=2: δ = -0.5 + 0.9*0.3 - 0.2 = -0.43; A = -0.43 + 0.45*1.75 = 0.3575
+    # t=1 (terminated): δ = 5 - 1 = 4; A = 4
+    # t=0: δ = 1 + 0.9*1.0 - 0.5 = 1.4; A = 1.4 + 0.45*4 = 3.2
+    expected = torch.tensor([[3.2], [4.0], [0.3575], [1.75], [4.0]])
+    assert torch.allclose(advantages, expected)
+    assert torch.allclose(returns, expected + values)
+
+
+def test_clipped_objective_and_its_gradient() -> None:
+    # Two steps with the same old probability 0.5 of action 0 (two actions), advantages +1 and -1.
+    # Step 0's new probability 0.8 (ratio 1.6 > 1.2, A > 0): clipped, no gradient.
+    # Step 1's new probability 0.55 (ratio 1.1, inside): -A·r, gradient -A·r·∂log π = r·(1 - π).
+    p = torch.tensor([0.8, 0.55])
+    logits = torch.stack([torch.log(p), torch.log(1 - p)], dim=1).requires_grad_()
+    values = torch.zeros(2, requires_grad=True)
+    old = torch.log(torch.tensor([0.5, 0.5]))
+    loss = ppo_loss(
+        logits,
+        values,
+        torch.tensor([0, 0]),
+        old,
+        torch.zeros(2),
+        torch.tensor([1.0, -1.0]),
+        torch.tensor([1.0, 3.0]),
+        torch.ones(2),
+        clip=0.2,
+        value_clip=0.0,
+        value_coef=0.5,
+        entropy_coef=0.0,
+    )
+    # policy: mean(max(-A r, -A clip(r))) = mean(-1.2, 1.1) = -0.05; value: 0.5 * mean(1, 9) = 2.5
+    assert loss.policy.item() == pytest.approx(-0.05)
+    assert loss.value.item() == pytest.approx(2.5)
+    assert loss.total.item() == pytest.approx(-0.05 + 0.5 * 2.5)
+    assert loss.clip_fraction.item() == pytest.approx(0.5)
+    loss.policy.backward()
+    # d(policy)/d logit_0 of step 1: ½ · r · ∂log π_0/∂logit_0 = ½ · 1.1 · (1 - 0.55)
+    assert logits.grad[0].abs().max().item() == 0.0
+    assert logits.grad[1, 0].item() == pytest.approx(0.5 * 1.1 * 0.45, rel=1e-5)
+    assert values.grad is None
+
+
+@pytest.mark.parametrize("name", ["a3c", "mjolnir_o", "mlp", "sp"])
+def test_segment_replay_equals_stepping_the_model_with_resets(name: str) -> None:
+    torch.manual_seed(0)
+    model = build_model(name, hidden_size=16, dropout=0.0).eval()
+    steps, batch, c = 5, 3, model.num_categories
+    context = torch.rand(steps, batch, c, 4) * (torch.rand(steps, batch, c, 1) < 0.1)
+    obs = {
+        "context": context,
+        "features": torch.rand(steps, batch, model.feature_channels, 7, 7),
+        "target_embedding": torch.randn(steps, batch, model.glove_dim),
+        "target_index": torch.randint(0, c, (steps, batch)),
+    }
+    prev_policy = torch.softmax(torch.randn(steps, batch, 6), -1)
+    starts = torch.zeros(steps, batch, dtype=torch.bool)
+    starts[2, 1] = starts[4, 0] = True  # new episodes inside the segment
+    hidden = (torch.randn(batch, model.hidden_size), torch.randn(batch, model.hidden_size))
+    logits, values = replay_segment(model, obs, prev_policy, starts, hidden)
+    h, c_ = hidden
+    for t in range(steps):
+        keep = (~starts[t]).float().unsqueeze(-1)
+        out = model({k: v[t] for k, v in obs.items()}, (h * keep, c_ * keep), prev_policy[t])
+        assert torch.allclose(out.logits, logits[t], atol=1e-5), t
+        assert torch.allclose(out.value.squeeze(-1), values[t], atol=1e-5), t
+        h, c_ = out.hidden
+    # The state after a start does not depend on what came before it.
+    other = (torch.randn_like(hidden[0]), torch.randn_like(hidden[1]))
+    again, _ = replay_segment(model, obs, prev_policy, starts, other)
+    assert torch.allclose(again[4, 0], logits[4, 0], atol=1e-6)
+    assert torch.allclose(again[3, 1], logits[3, 1], atol=1e-6)
+    assert not torch.allclose(again[1, 2], logits[1, 2])
+
+
+@pytest.mark.parametrize("model", ["a3c", "savn"])
+def test_replay_reproduces_the_acting_policy(model: str) -> None:
+    """With the parameters that acted, every replayed log-probability is the recorded one (ratio 1):
+    segments with episode starts inside them, and whole episodes through the inner loop."""
+    trainer = PPOTrainer(
+        tiny_config(model, "algo=ppo", "ppo.envs=4", "ppo.steps=12", "frames=100"), None, fixture_library
+    )
+    trainer._setup(None)
+    segment = trainer.collector.collect(12 if model == "a3c" else 8, trainer.rng)
+    if model == "a3c":
+        assert segment.starts[1:].any(), "the fixture's episodes should end inside the segment"
+    columns = torch.arange(4)
+    if trainer.inner is None:
+        logits, values = replay_segment(
+            trainer.model, segment.obs, segment.prev_policy, segment.starts, segment.hidden
+        )
+    else:
+        logits, values, _ = trainer._replay_episodes(segment, columns)
+    steps = logits.shape[0]
+    log_prob = torch.log_softmax(logits, -1).gather(-1, segment.actions[:steps, :, None]).squeeze(-1)
+    mask = segment.mask[:steps] > 0
+    assert torch.allclose(log_prob[mask], segment.log_prob[:steps][mask], atol=1e-5)
+    assert torch.allclose(values[mask], segment.values[:steps][mask], atol=1e-5)
+
+
+def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones() -> None:
+    trainer = PPOTrainer(
+        tiny_config("savn", "algo=ppo", "ppo.envs=3", "ppo.minibatches=1", "frames=100"),
+        None,
+        fixture_library,
+    )
+    trainer._setup(None)
+    segment = trainer.collector.collect(8, trainer.rng)
+    torch.manual_seed(1)
+    weights = torch.randn(8, 3, 6)
+
+    def gradient(columns: list[int]) -> list[torch.Tensor]:
+        trainer.optimizer.zero_grad(set_to_none=True)
+        index = torch.tensor(columns)
+        logits, values, state = trainer._replay_episodes(segment, index)
+        steps = logits.shape[0]
+        mask = segment.mask[:steps, index]
+        objective = ((logits * weights[:steps, index]).sum(-1) + values) * mask
+        trainer.inner.backward(state, objective.sum())
+        return [p.grad.clone() if p.grad is not None else torch.zeros_like(p) for p in trainer.params]
+
+    batched = gradient([0, 1, 2])
+    separate = [gradient([b]) for b in range(3)]
+    for i, g in enumerate(batched):
+        total = sum(s[i] for s in separate)
+        assert torch.allclose(g, total, atol=1e-5, rtol=1e-4), i
+    assert any(g.abs().sum() > 0 for g in batched)
+
+
+@pytest.mark.parametrize("model", ["a3c", "savn"])
+def test_ppo_run_resumes_exactly(tmp_path: Path, model: str) -> None:
+    overrides = ("algo=ppo", "ppo.envs=4", "ppo.steps=6", "ppo.minibatches=2", "ppo.epochs=2", "episodes=0")
+    config = tiny_config(model, *overrides, "frames=96", "checkpoint_every=1", "log_every=2")
+    straight = tmp_path / "straight"
+    summary = train(config, straight, library_factory=fixture_library)
+    assert summary["frames"] >= 96 and summary["episodes"] > 0
+    halted = tmp_path / "halted"
+    train(config.replace(frames=48), halted, library_factory=fixture_library)
+    resumed_config, state = resume_config(halted, ["frames=96"])
+    train(resumed_config, halted, resume=state, library_factory=fixture_library)
+    a, b = ckpt.load_file(straight / ckpt.CHECKPOINT_FILE), ckpt.load_file(halted / ckpt.CHECKPOINT_FILE)
+    assert a["counters"] == b["counters"]
+    for key, value in a["model"].items():
+        assert torch.equal(value, b["model"][key]), key
+    records = (straight / "metrics.jsonl").read_text()
+    for key in ("ppo/approx_kl", "ppo/clip_fraction", "ppo/explained_variance", "charts/success"):
+        assert key in records
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("ppo.minibatches=8", "at least as many slots"),
+        ("ppo.lr=nan", "ppo.lr"),
+        ("ppo.lam=1.5", "ppo.lam"),
+        ("mode=async", "batched mode"),
+    ],
+)
+def test_impossible_ppo_settings_are_clear_errors(override: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        tiny_config("a3c", "algo=ppo", "ppo.envs=4", override)
