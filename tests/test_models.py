@@ -13,7 +13,7 @@ from mapless.models import ModelConfig, build_model, context_vector, count_param
 from mapless.models.base import pointwise_conv, pointwise_conv_of_parts, tile
 from mapless.models.synthetic import synthetic_observations
 
-ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta"]
+ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta", "mlp"]
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@ paper's models). It shows what the observations alone support at a fraction of t
 
 Inputs (docs/observations.md): the context rows of every category flattened (C x 4), the GloVe
 cosine of every category to the target (C), and the target's own context row (4, zeros when the
-target is not a category), plus the previous policy (6). Two 256-wide ReLU layers, an LSTMCell(256),
-actor and critic on h.
+target is not a category), plus the previous policy (6). Two 256-wide ReLU layers, an LSTMCell (``model.hidden_size``,
+512 as every model), actor and critic on h.
 """
 
 from __future__ import annotations
@@ -27,18 +27,17 @@ WIDTH = 256
 
 
 class MlpModel(RecurrentNavModel):
-    description = "sanity baseline: MLP over the context rows + target row + GloVe cosines -> LSTM(256)"
+    description = "sanity baseline: MLP over the context rows + target row + GloVe cosines -> LSTM"
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
-        self.hidden_size = WIDTH
         c = self.num_categories
         self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
         self.layer1 = nn.Linear(c * 4 + c + 4 + NUM_ACTIONS, WIDTH)
         self.layer2 = nn.Linear(WIDTH, WIDTH)
-        self.lstm = nn.LSTMCell(WIDTH, WIDTH)
-        self.actor_linear = nn.Linear(WIDTH, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(WIDTH, 1)
+        self.lstm = nn.LSTMCell(WIDTH, self.hidden_size)
+        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(self.hidden_size, 1)
         init_heads_and_lstm(self)
 
     def encode(
