@@ -312,3 +312,25 @@ def test_run_tally_times_each_model_by_its_own_runs(monkeypatch):
         "[run 4 of 5] cvmeta all, seed 2; no cvmeta run timed yet (4 min per a3c run)",
         "[run 5 of 5] cvmeta all, seed 3; about 20 min left (4 min per a3c run, 20 min per cvmeta run)",
     ]
+
+
+@pytest.mark.parametrize(
+    "args", [["--batch-size", "0"], ["--batch-size", "-3"], ["--per-room", "0"], ["--workers", "0"]]
+)
+def test_eval_refuses_non_positive_counts(args: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["eval", "random", *args])
+    assert stop.value.code == 2
+    assert "must be >= 1" in capsys.readouterr().err
+
+
+def test_experiment_eval_settings_and_every_models_training_config_are_checked_on_load() -> None:
+    from mapless.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"eval\.batch_size"):
+        load_experiment("table1", "smoke", overrides=["eval.batch_size=0"])
+    # a3c is not the focus model: its block is checked all the same, before any run starts
+    with pytest.raises(ConfigError, match=r"ppo\.minibatches"):
+        load_experiment(
+            "table1", "smoke", overrides=["per_model.a3c.algo=ppo", "per_model.a3c.ppo.minibatches=999"]
+        )

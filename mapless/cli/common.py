@@ -38,3 +38,14 @@ def parse_pose(text: str) -> tuple[float, float, int, int]:
         return float(parts[0]), float(parts[1]), int(parts[2]), int(parts[3])
     except ValueError:
         raise argparse.ArgumentTypeError(f"pose {text!r} must be x,z,yaw,horizon (numbers)") from None
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (a batch size, a worker or episode count)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value

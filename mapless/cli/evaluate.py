@@ -7,6 +7,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from mapless.cli.common import positive_int
 from mapless.errors import MaplessError
 
 
@@ -21,15 +22,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     ev.add_argument("--split", choices=("val", "test", "paper"), default="val")
     ev.add_argument("--episodes", type=Path, help="episode file instead of the built-in set of --split")
-    ev.add_argument("--per-room", type=int, help="only the first N episodes of each room type")
+    ev.add_argument("--per-room", type=positive_int, help="only the first N episodes of each room type")
     ev.add_argument("--select", action="store_true",
                     help="run folders: evaluate every checkpoint on val and report the best by SR (ties SPL) on --split "
                          "(--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
     ev.add_argument(
         "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/interop.md)"
     )
-    ev.add_argument("--workers", type=int, default=2)
-    ev.add_argument("--batch-size", type=int, default=32)
+    ev.add_argument("--workers", type=positive_int, default=2)
+    ev.add_argument("--batch-size", type=positive_int, default=32)
     ev.add_argument("--seed", type=int, default=0, help="action-sampling seed")
     ev.add_argument(
         "--greedy", action="store_true", help="argmax actions instead of sampling (the references sample)"
@@ -54,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     rep.add_argument("experiment", choices=("table1", "table2", "table3", "figure3", "figures45"))
     rep.add_argument("--budget", choices=("smoke", "small", "full"), default="smoke")
-    rep.add_argument("--seeds", type=int, help="training seeds per run (overrides the config)")
+    rep.add_argument("--seeds", type=positive_int, help="training seeds per run (overrides the config)")
     rep.add_argument(
         "--config", type=Path, help="experiment YAML (default experiments/EXPERIMENT_BUDGET.yaml)"
     )

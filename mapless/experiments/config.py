@@ -39,6 +39,12 @@ class ExperimentEval:
     seed: int = 0
     greedy: bool = False
 
+    def __post_init__(self) -> None:
+        for key in ("per_room", "batch_size", "workers"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or value < 1:
+                raise ConfigError(f"config key 'eval.{key}': must be an integer >= 1, got {value!r}")
+
 
 @dataclass(frozen=True)
 class ExperimentConfig:
@@ -105,6 +111,8 @@ def load_experiment(
     config = load_config(ExperimentConfig, path, extra)
     if config.experiment != experiment:
         raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
+    for model in {*config.models, config.focus} - {"random"}:  # every run's config, before any work
+        train_config(config, model, 1)
     return config
 
 
