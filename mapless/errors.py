@@ -21,3 +21,8 @@ class UnknownNameError(MaplessError, KeyError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return self.args[0]
+
+
+class TrainingDiverged(MaplessError):
+    """A loss or gradient became NaN or infinite: the run stops before the step would reach the
+    parameters, and the last checkpoint on disk stays the last good state."""

@@ -27,6 +27,7 @@ from mapless.train.common import (
     BuiltinLibrary,
     GracefulStop,
     LibraryFactory,
+    check_finite,
     clip_gradients,
     configure_torch,
     fill_missing_gradients,
@@ -153,6 +154,7 @@ class BatchedTrainer:
         fill_missing_gradients(self.model)
         dist.all_reduce_gradients(self.params, self.ctx)
         grad_norm = clip_gradients(self.model, cfg)
+        check_finite(grad_norm, self.counters)
         self.optimizer.step()
         return {"trajectory": trajectory, "losses": losses, "grad_norm": grad_norm}
 

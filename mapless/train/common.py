@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from mapless.episodes.sampler import TrainingSampler
+from mapless.errors import TrainingDiverged
 from mapless.models import NavModel, build_model
 from mapless.sim.library import SceneLibrary
 from mapless.sim.task import RewardConfig, TargetFields
@@ -105,6 +106,17 @@ def clip_gradients(model: NavModel, config: TrainConfig) -> float:
     if limit > 0:
         torch.nn.utils.clip_grads_with_norm_(params, limit, norm)
     return float(norm)
+
+
+def check_finite(norm: float, counters: dict[str, int]) -> None:
+    """Stop a run whose gradient is NaN or infinite, before the optimizer step spreads it."""
+    if not np.isfinite(norm):
+        raise TrainingDiverged(
+            f"the gradient became {norm} at update {counters['updates'] + 1} "
+            f"({counters['episodes']} episodes, {counters['frames']} frames): training diverged; the run "
+            "folder's checkpoint.pt still holds the last good state (lower the learning rate, or check the "
+            "reward and loss settings, before resuming)"
+        )
 
 
 def trainable(model: NavModel) -> list[torch.Tensor]:

@@ -68,6 +68,8 @@ class EnvConfig:
         except KeyError as error:
             raise ConfigError(f"config key 'env.target_set': {error}") from None
         _require(self.max_steps > 0, "env.max_steps", f"must be positive, got {self.max_steps}")
+        for key in ("step_penalty", "success_reward"):
+            _require(_finite(getattr(self, key)), f"env.{key}", f"must be finite, got {getattr(self, key)}")
         unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
         _require(
             not unknown_rooms,
@@ -96,7 +98,10 @@ class OptimConfig:
     meta_grad_clip: float = 0.0
 
     def __post_init__(self) -> None:
-        _require(self.lr > 0, "optim.lr", f"must be positive, got {self.lr}")
+        _require(_finite(self.lr) and 0 < self.lr <= 1, "optim.lr", f"must lie in (0, 1], got {self.lr}")
+        _require(
+            _finite(self.grad_clip) and _finite(self.meta_grad_clip), "optim.grad_clip", "must be finite"
+        )
         _require(0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "optim.beta1/beta2", "must lie in [0, 1)")
         _require(self.eps > 0, "optim.eps", f"must be positive, got {self.eps}")
         _require(self.grad_clip >= 0, "optim.grad_clip", f"must be >= 0 (0 = off), got {self.grad_clip}")
@@ -117,6 +122,8 @@ class LossConfig:
         _require(0 <= self.tau <= 1, "loss.tau", f"must lie in [0, 1], got {self.tau}")
         _require(self.beta >= 0, "loss.beta", f"must be >= 0, got {self.beta}")
         _require(self.value_coef >= 0, "loss.value_coef", f"must be >= 0, got {self.value_coef}")
+        for key in ("beta", "value_coef"):
+            _require(_finite(getattr(self, key)), f"loss.{key}", f"must be finite, got {getattr(self, key)}")
 
 
 @dataclass(frozen=True)
@@ -172,9 +179,8 @@ class PPOConfig:
             f"(ppo.envs = {self.envs})",
         )
         for key in ("lr", "adam_eps"):
-            _require(
-                _finite(getattr(self, key)) and getattr(self, key) > 0, f"ppo.{key}", "must be finite and > 0"
-            )
+            value = getattr(self, key)
+            _require(_finite(value) and 0 < value <= 1, f"ppo.{key}", f"must lie in (0, 1], got {value}")
         for key in ("clip", "value_clip", "entropy_coef", "value_coef", "max_grad_norm"):
             value = getattr(self, key)
             _require(_finite(value) and value >= 0, f"ppo.{key}", f"must be finite and >= 0, got {value}")
@@ -245,7 +251,11 @@ class TrainConfig:
         _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
         _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
         _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
-        _require(self.max_seconds >= 0, "max_seconds", f"must be >= 0, got {self.max_seconds}")
+        _require(
+            _finite(self.max_seconds) and self.max_seconds >= 0,
+            "max_seconds",
+            f"must be finite and >= 0, got {self.max_seconds}",
+        )
         _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
         _require(
             self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"

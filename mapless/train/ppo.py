@@ -36,6 +36,7 @@ from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.common import (
+    check_finite,
     configure_torch,
     new_model,
     seed_for,
@@ -199,6 +200,7 @@ class PPOTrainer(BatchedTrainer):
         dist.all_reduce_gradients(self.params, self.ctx)
         params = [p for p in self.params if p.grad is not None]
         norm = torch.nn.utils.get_total_norm([p.grad for p in params])
+        check_finite(float(norm), self.counters)
         if self.config.ppo.max_grad_norm > 0:
             torch.nn.utils.clip_grads_with_norm_(params, self.config.ppo.max_grad_norm, norm)
         self.optimizer.step()
