@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.profiler import record_function
 
 from mapless.models.base import RecurrentNavModel, lstm_state_from_gates
 
@@ -38,17 +39,21 @@ def replay_segment(
     steps, batch = starts.shape
     flat = {key: value.flatten(0, 1) for key, value in obs.items()}
     flat_hidden = model.initial_state(steps * batch, prev_policy.device)  # unread by these encoders
-    x, critic_input = model.encode(model.describe(flat), flat_hidden, prev_policy.flatten(0, 1))
     cell = model.lstm
-    input_gates = F.linear(x, cell.weight_ih, cell.bias_ih + cell.bias_hh).view(steps, batch, -1)
+    # The labels name the parts in profiles (bench/frame_cost.py); they cost nothing otherwise.
+    with record_function("encoder"):
+        x, critic_input = model.encode(model.describe(flat), flat_hidden, prev_policy.flatten(0, 1))
+        input_gates = F.linear(x, cell.weight_ih, cell.bias_ih + cell.bias_hh).view(steps, batch, -1)
     keep = (~starts).to(x.dtype).unsqueeze(-1)
     h, c = hidden
     outputs = []
-    for t in range(steps):
-        h, c = h * keep[t], c * keep[t]
-        h, c = lstm_state_from_gates(input_gates[t] + F.linear(h, cell.weight_hh), c)
-        outputs.append(h)
-    h_all = torch.stack(outputs).flatten(0, 1)
-    logits = model.actor_linear(h_all).view(steps, batch, -1)
-    values = model.value(h_all, critic_input).view(steps, batch)
+    with record_function("lstm"):
+        for t in range(steps):
+            h, c = h * keep[t], c * keep[t]
+            h, c = lstm_state_from_gates(input_gates[t] + F.linear(h, cell.weight_hh), c)
+            outputs.append(h)
+    with record_function("heads"):
+        h_all = torch.stack(outputs).flatten(0, 1)
+        logits = model.actor_linear(h_all).view(steps, batch, -1)
+        values = model.value(h_all, critic_input).view(steps, batch)
     return logits, values

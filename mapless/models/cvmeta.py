@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.profiler import record_function
 
 from mapless.knowledge import Knowledge
 from mapless.models.base import (
@@ -79,7 +80,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
         """Hierarchical GCN, in-view indicator ``[B, C]`` -> per-node embedding ``[B, 64, C]``."""
-        return self.per_in_view(in_view, self._hierarchical_gcn)
+        with record_function("graph"):
+            return self.per_in_view(in_view, self._hierarchical_gcn)
 
     def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
         shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))

@@ -180,20 +180,35 @@ class PPOTrainer(BatchedTrainer):
         return PPOLoss(*(t.detach() for t in loss))
 
     def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
-        """Whole episodes through the meta-learning inner loop, adapted from the current parameters."""
+        """Whole episodes through the meta-learning inner loop, adapted from the current parameters.
+
+        Only the episodes still running are stepped (``rows``: their positions in ``columns``); an
+        episode that ended leaves the inner loop's batch (:meth:`InnerLoop.compact`), and its later
+        outputs are zeros that the loss masks out."""
         mask = segment.mask[:, columns]
-        steps = int(mask.sum(0).max())
-        state = self.inner.start(len(columns))
-        hidden = self.model.initial_state(len(columns), self.device)
+        steps, batch = int(mask.sum(0).max()), len(columns)
+        state = self.inner.start(batch)
+        hidden = self.model.initial_state(batch, self.device)
+        rows = torch.arange(batch, device=self.device)
         logits, values = [], []
         for t in range(steps):
-            obs = {k: v[t].index_select(0, columns) for k, v in segment.obs.items()}
-            out = self.inner.forward(state, obs, hidden, segment.prev_policy[t].index_select(0, columns))
-            alive = mask[t + 1] > 0 if t + 1 < mask.shape[0] else torch.zeros_like(mask[t], dtype=torch.bool)
+            episodes = columns.index_select(0, rows)
+            obs = {k: v[t].index_select(0, episodes) for k, v in segment.obs.items()}
+            out = self.inner.forward(state, obs, hidden, segment.prev_policy[t].index_select(0, episodes))
+            alive = (
+                (mask[t + 1].index_select(0, rows) > 0)
+                if t + 1 < len(mask)
+                else mask.new_zeros(len(rows)).bool()
+            )
             self.inner.observe(state, out, alive)
+            logits.append(out.logits.new_zeros(batch, out.logits.shape[-1]).index_copy(0, rows, out.logits))
+            values.append(out.value.new_zeros(batch).index_copy(0, rows, out.value.reshape(-1)))
             hidden = out.hidden
-            logits.append(out.logits)
-            values.append(out.value.reshape(-1))
+            if t + 1 < steps and not bool(alive.all()):
+                keep = alive.nonzero().squeeze(1)
+                self.inner.compact(state, keep)
+                rows = rows.index_select(0, keep)
+                hidden = tuple(h.index_select(0, keep) for h in hidden)
         return torch.stack(logits), torch.stack(values), state
 
     def _step(self) -> float:

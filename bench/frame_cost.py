@@ -1,0 +1,131 @@
+"""Per-frame cost of every trainable model in the PPO recipe, side by side with the mlp sanity model.
+
+For each model a real segment is collected in the training scenes (``ppo.envs`` slots; whole episodes
+for adaptive models) and then, model by model in turns (this machine's speed drifts), timed:
+
+* acting: frames/s of the collection (forward passes without gradient, memo on);
+* update: frame-passes/s of one PPO minibatch's replay, forward + backward (segments through
+  ``replay_segment``; adaptive models through the meta-learning inner loop);
+* PPO: the frames/s a run reaches from those two, ``1 / (1/acting + epochs/update)``;
+* the split of a non-adaptive replay's forward (``encoder`` incl. ``graph``, ``lstm``, ``heads``)
+  from the profiler's labels.
+
+    python bench/frame_cost.py [--models a3c,mjolnir_o,cvmeta,mlp] [--threads 1,2] [--repeats 3]
+                               [--set KEY=VALUE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+PPO_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "train_ppo.yaml"
+
+
+def build(model: str, overrides: list[str]):
+    import yaml
+
+    from mapless.config import apply_overrides, from_dict
+    from mapless.train.config import TrainConfig
+    from mapless.train.ppo import PPOTrainer
+    from mapless.train.segments import SegmentCollector
+
+    data = yaml.safe_load(PPO_CONFIG.read_text())
+    data["model"] = {"name": model}
+    data.update(progress=False, threads=0)
+    trainer = PPOTrainer(from_dict(TrainConfig, apply_overrides(data, overrides)), None)
+    trainer._setup(None)
+    assert isinstance(trainer.collector, SegmentCollector)
+    return trainer
+
+
+def time_acting(trainer) -> tuple[float, object]:
+    steps = trainer.config.env.max_steps if trainer.inner is not None else trainer.config.ppo.steps
+    start = time.perf_counter()
+    segment = trainer.collector.collect(steps, trainer.rng)
+    return segment.frames / (time.perf_counter() - start), segment
+
+
+def time_update(trainer, segment) -> float:
+    from mapless.train.ppo_loss import gae
+
+    ppo = trainer.config.ppo
+    adv, ret = gae(segment.rewards, segment.values, segment.next_value, segment.terminated,
+                   segment.truncated, segment.bootstrap, ppo.gamma, ppo.lam)  # fmt: skip
+    columns = torch.arange(segment.mask.shape[1] // ppo.minibatches)
+    start = time.perf_counter()
+    trainer._minibatch_step(segment, columns, adv, ret)
+    trainer.optimizer.zero_grad(set_to_none=True)
+    return float(segment.mask[:, columns].sum()) / (time.perf_counter() - start)
+
+
+def forward_split(trainer, segment) -> dict[str, float]:
+    """Milliseconds of the labelled parts of one non-adaptive replay's forward pass."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from mapless.agent.sequence import replay_segment
+    from mapless.models.memo import InViewMemo
+
+    if trainer.inner is not None:
+        return {}
+    columns = torch.arange(segment.mask.shape[1] // trainer.config.ppo.minibatches)
+    memo = trainer.model.memoizing_in_view(InViewMemo(max_rows=None))
+    with profile(activities=[ProfilerActivity.CPU]) as prof, torch.no_grad(), memo:
+        replay_segment(trainer.model, {k: v[:, columns] for k, v in segment.obs.items()},
+                           segment.prev_policy[:, columns], segment.starts[:, columns],
+                           tuple(t[columns] for t in segment.hidden))  # fmt: skip
+    totals = {
+        e.key: e.cpu_time_total / 1000
+        for e in prof.key_averages()
+        if e.key in ("encoder", "graph", "lstm", "heads")
+    }
+    return totals
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", default="a3c,mjolnir_o,cvmeta,mlp")
+    parser.add_argument("--threads", default="1,2")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = parser.parse_args()
+    models = args.models.split(",")
+    for threads in [int(t) for t in args.threads.split(",")]:
+        torch.set_num_threads(threads)
+        trainers = {m: build(m, args.set) for m in models}
+        acting = {m: [] for m in models}
+        update = {m: [] for m in models}
+        segments = {}
+        for _ in range(args.repeats):
+            for m, trainer in trainers.items():  # models take turns
+                fps, segments[m] = time_acting(trainer)
+                acting[m].append(fps)
+                update[m].append(time_update(trainer, segments[m]))
+        print(f"\n{threads} thread(s), median of {args.repeats} turns")
+        print(
+            "| model | acting frames/s | update frame-passes/s | PPO frames/s | vs mlp | forward split (ms: encoder / graph / lstm / heads) |"
+        )
+        print("|---|---|---|---|---|---|")
+        best = {}
+        for m in models:
+            a, u = sorted(acting[m])[len(acting[m]) // 2], sorted(update[m])[len(update[m]) // 2]
+            # every frame is acted once and replayed (forward + backward) once per epoch
+            best[m] = (a, u, 1.0 / (1.0 / a + trainers[m].config.ppo.epochs / u))
+        reference = best.get("mlp", (0, 0, 0))[2]
+        for m in models:
+            a, u, ppo = best[m]
+            split = forward_split(trainers[m], segments[m])
+            parts = (
+                " / ".join(f"{split.get(k, 0):.0f}" for k in ("encoder", "graph", "lstm", "heads"))
+                if split
+                else "(inner loop)"
+            )
+            ratio = f"{reference / ppo:.1f}x dearer" if reference else ""
+            print(f"| {m} | {a:.0f} | {u:.0f} | {ppo:.0f} | {ratio} | {parts} |")
+
+
+if __name__ == "__main__":
+    main()
