@@ -2,7 +2,7 @@
 
 A training rollout multiplies the 4H x (D + H) LSTM weight (2048 x 3744 for cvmeta) by a few rows at
 a time: the forward product ``x Wᵀ``, the inner steps' transposed product ``g W``, and once per
-update the weight gradient ``Gᵀ X`` of all rows (mapless/train/rollout_lstm.py). The same product
+update the weight gradient ``Gᵀ X`` of all rows (mapless/agent/rollout_lstm.py). The same product
 can read a row-major copy of W or of Wᵀ; this prints both, measured in alternation, per row count:
 
     python bench/bench_lstm_layout.py [--threads 2] [--rounds 20]

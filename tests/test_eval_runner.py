@@ -134,8 +134,8 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
 def test_test_time_step_matches_the_training_inner_loop(episodes):
     """The evaluator's in-place step with per-slot factor blocks gives the same policy as the
     training inner loop's (differentiable, growing-factor) step on the same rows."""
+    from mapless.agent.meta import InnerLoop
     from mapless.models.synthetic import synthetic_observations
-    from mapless.train.meta import InnerLoop
 
     torch.manual_seed(1)
     model = build_model("cvmeta", hidden_size=32).eval()

@@ -1,9 +1,9 @@
-"""The deferred factor gradients of mapless.train.low_rank against plain autograd."""
+"""The deferred factor gradients of mapless.agent.low_rank against plain autograd."""
 
 import pytest
 import torch
 
-from mapless.train.low_rank import LowRankUpdates, apply_low_rank
+from mapless.agent.low_rank import LowRankUpdates, apply_low_rank
 
 B, K, GATES, INPUTS = 3, 4, 8, 5
 

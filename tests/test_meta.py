@@ -4,11 +4,11 @@ import pytest
 import torch
 from torch.func import functional_call
 
+from mapless.agent.meta import InnerLoop
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model
 from mapless.models.synthetic import synthetic_observations
 from mapless.train.a3c_loss import a3c_loss
-from mapless.train.meta import InnerLoop
 
 K = 3  # interaction steps per inner update in these tests
 LR = 0.05  # large enough that adaptation visibly changes the outputs

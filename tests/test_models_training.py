@@ -6,11 +6,11 @@ The toy task: synthetic observations, reward +1 for MoveAhead (action 0) and -0.
 import pytest
 import torch
 
+from mapless.agent.meta import InnerLoop
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, model_names
 from mapless.models.synthetic import synthetic_observations
 from mapless.train.a3c_loss import a3c_loss
-from mapless.train.meta import InnerLoop
 
 BATCH, LENGTH, ROLLOUTS = 3, 8, 10  # 240 environment steps per model
 

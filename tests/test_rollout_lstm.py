@@ -9,8 +9,8 @@ import weakref
 import torch
 from torch import nn
 
+from mapless.agent.rollout_lstm import RolloutLstm
 from mapless.models.base import lstm_state_from_gates, lstm_step
-from mapless.train.rollout_lstm import RolloutLstm
 
 
 def _rollout(cell, xs, lstm=None):

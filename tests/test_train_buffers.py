@@ -1,4 +1,4 @@
-"""Buffers reused across updates (mapless.train.buffers): the LSTM operand and weight gradients of
+"""Buffers reused across updates (mapless.agent.buffers): the LSTM operand and weight gradients of
 consecutive rollouts, Adam's denominator. Reuse must never change a result."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import math
 import torch
 from torch import nn
 
+from mapless.agent.buffers import BufferPool
+from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
 from mapless.models.base import lstm_state_from_gates
-from mapless.train.buffers import BufferPool
 from mapless.train.optim import SharedAdam
-from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 
 def test_pool_reuses_storage_and_replaces_on_a_new_shape():

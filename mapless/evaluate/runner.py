@@ -13,7 +13,7 @@ How it runs:
 * Models run in ``eval()`` mode (dropout off) under ``inference_mode``. Adaptive models (savn, gve,
   spatt, cvmeta) adapt at test time as in training: every k = 6 steps, at most 4 times, one SGD step
   of the non-``ll`` parameters on the learned interaction loss, with φ frozen, from the trained θ in
-  every episode (:class:`mapless.train.meta.InnerLoop` with ``meta_train=False``). Their inner steps
+  every episode (:class:`mapless.agent.meta.InnerLoop` with ``meta_train=False``). Their inner steps
   are batched, so new episodes start only at k-step boundaries (a slot waits at most k - 1 steps).
 """
 
@@ -69,7 +69,7 @@ class ModelAgent:
         self.batch_size = batch_size
         self.bf16 = bf16
         if bf16:
-            from mapless.train.precision import keep_compiled_kernels
+            from mapless.agent.precision import keep_compiled_kernels
 
             keep_compiled_kernels()
         self.model = model.eval()
@@ -113,14 +113,14 @@ class AdaptiveModelAgent(ModelAgent):
 
     Every slot owns fast weights (θ, reset to the trained θ when an episode starts): the small ones as
     per-slot copies, the LSTM matrices as θ plus the slot's low-rank inner-step factors, exactly as
-    in training (:class:`mapless.train.meta.InnerLoop` with ``meta_train=False``). Episodes start at
+    in training (:class:`mapless.agent.meta.InnerLoop` with ``meta_train=False``). Episodes start at
     k-step boundaries, so every slot's k-row buffer covers exactly its last k steps, computed with its
     current fast weights, and one batched ``InnerLoop.adapt`` serves all slots due for a step.
     """
 
     def __init__(self, model, batch_size: int):
         super().__init__(model, batch_size)
-        from mapless.train.meta import InnerLoop
+        from mapless.agent.meta import InnerLoop
 
         torch = self.torch
         self.loop = InnerLoop(model, meta_train=False)

@@ -4,7 +4,7 @@ Models receive the observation dict of docs/observations.md, the recurrent state
 previous step's policy (``[B, 6]``), and return :class:`ModelOutput`. Every computation is written
 with plain tensor ops on the module's own parameters (the LSTM step included), so
 ``torch.func.functional_call`` with any parameter dict, and ``torch.func.vmap`` over per-episode
-parameters (the meta-learning inner loop, :mod:`mapless.train.meta`), evaluate the same function.
+parameters (the meta-learning inner loop, :mod:`mapless.agent.meta`), evaluate the same function.
 """
 
 from __future__ import annotations
@@ -215,7 +215,7 @@ class RecurrentNavModel(NavModel, abc.ABC):
     Subclasses implement :meth:`encode` (and :meth:`value` if the critic sees more than h), and may
     split off :meth:`describe`. The split lets the meta-learning inner loop run the encoder with
     per-episode weights under ``vmap`` and the LSTM with shared weights plus low-rank per-episode
-    updates (:mod:`mapless.train.meta`).
+    updates (:mod:`mapless.agent.meta`).
     """
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:

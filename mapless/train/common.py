@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapless.agent.precision import keep_compiled_kernels
 from mapless.episodes.sampler import TrainingSampler
 from mapless.errors import TrainingDiverged
 from mapless.models import NavModel, build_model
@@ -19,7 +20,6 @@ from mapless.sim.library import SceneLibrary
 from mapless.sim.task import RewardConfig, TargetFields
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.config import TrainConfig
-from mapless.train.precision import keep_compiled_kernels
 
 #: Builds the scene library in the process that needs it (async workers build their own).
 LibraryFactory = Callable[[], SceneLibrary]

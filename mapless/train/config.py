@@ -212,7 +212,7 @@ class TrainConfig:
     threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
     precision: ``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast)
         and the LSTM's weight products (forward, inner steps, weight gradient), where most of the
-        arithmetic is; parameters, optimizer and losses stay float32 (:mod:`mapless.train.precision`,
+        arithmetic is; parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`,
         docs/training.md "Precision"). Opt-in.
     checkpoint_every: episodes between checkpoints (a resumable one plus a model snapshot).
     log_every: episodes between TensorBoard / metrics.jsonl records.

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
-from mapless.train.buffers import BufferPool
+from mapless.agent.buffers import BufferPool
 from mapless.train.config import OptimConfig
 
 

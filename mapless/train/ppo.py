@@ -11,7 +11,7 @@ Per update::
             backward, all-reduce over ranks, clip, Adam step
 
 Adaptive models (savn, gve, spatt, cvmeta) play whole episodes and replay each one through the
-meta-learning inner loop (:class:`~mapless.train.meta.InnerLoop`), recomputed in every minibatch from
+meta-learning inner loop (:class:`~mapless.agent.meta.InnerLoop`), recomputed in every minibatch from
 the current parameters: the first k steps interact, the rest act with the weights adapted on the
 learned interaction loss, and the meta-gradient (second order, or first order with ``meta.first_order``)
 flows through the adaptation. The probability ratio is that of the adapted policy against the
@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from mapless.agent.acting import observation_keys
+from mapless.agent.meta import InnerLoop
 from mapless.agent.sequence import replay_segment
 from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
@@ -44,7 +45,6 @@ from mapless.train.common import (
     training_env,
     training_sampler,
 )
-from mapless.train.meta import InnerLoop
 from mapless.train.monitor import RunMonitor
 from mapless.train.ppo_loss import PPOLoss, gae, ppo_loss
 from mapless.train.segments import Segment, SegmentCollector

@@ -22,17 +22,17 @@ import torch
 from torch import Tensor
 
 from mapless.agent.acting import sample_actions, to_tensors
+from mapless.agent.buffers import BufferPool
+from mapless.agent.meta import InnerLoop, InnerLoopState
+from mapless.agent.precision import PRECISIONS, encoder_autocast, like
+from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
 from mapless.episodes.episode import Episode
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 from mapless.models.memo import InViewMemo
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
-from mapless.train.buffers import BufferPool
 from mapless.train.config import LossConfig
-from mapless.train.meta import InnerLoop, InnerLoopState
-from mapless.train.precision import PRECISIONS, encoder_autocast, like
-from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 
 @dataclass
@@ -64,7 +64,7 @@ class Trajectory:
 class Actor:
     """Forward pass of a plain model or, for adaptive models in training, of the batched inner loop.
 
-    Both run the model's LSTM through a :class:`~mapless.train.rollout_lstm.RolloutLstm` (one weight
+    Both run the model's LSTM through a :class:`~mapless.agent.rollout_lstm.RolloutLstm` (one weight
     gradient per rollout instead of one per step). :func:`run_batch` steps only the episodes still
     running, so no forward pass is computed for finished ones; :meth:`compact` drops them from the
     inner loop's per-episode fast weights too.
@@ -72,7 +72,7 @@ class Actor:
 
     def __init__(self, model: NavModel, inner: InnerLoop | None, dtype: torch.dtype | None = None):
         """``dtype``: compute dtype of a plain model's encoders and LSTM products
-        (:mod:`mapless.train.precision`; the inner loop has its own)."""
+        (:mod:`mapless.agent.precision`; the inner loop has its own)."""
         self.model = model
         self.inner = inner
         self.dtype = dtype
@@ -147,7 +147,7 @@ class Actor:
 
 
 def make_actor(model: NavModel, first_order: bool = False, precision: str = "fp32") -> Actor:
-    """The training actor of ``model`` at ``precision`` (``fp32`` or ``bf16``, :mod:`mapless.train.precision`)."""
+    """The training actor of ``model`` at ``precision`` (``fp32`` or ``bf16``, :mod:`mapless.agent.precision`)."""
     dtype = PRECISIONS[precision]
     inner = InnerLoop(model, first_order=first_order, dtype=dtype) if model.adaptive else None
     return Actor(model, inner, dtype)

@@ -256,7 +256,7 @@ class _AdaptingActor:
     """Acting with SAVN's inner loop at its test-time setting (fast weights adapted in place)."""
 
     def __init__(self, model: NavModel, batch: int):
-        from mapless.train.meta import InnerLoop
+        from mapless.agent.meta import InnerLoop
 
         self.loop = InnerLoop(model, meta_train=False)
         # θ stays fixed while acting; only the per-episode fast copies take inner gradients.

@@ -24,7 +24,7 @@ import weakref
 import torch
 from torch import Tensor, nn
 
-from mapless.train.buffers import BufferPool
+from mapless.agent.buffers import BufferPool
 
 
 class _DeferredWeightMatmul(torch.autograd.Function):
@@ -80,7 +80,7 @@ class RolloutLstm:
         AMX, at bfloat16's 8-bit mantissa. Everything else stays float32.
 
         ``buffers``: where the operand and the weight gradients live; a trainer passes the same
-        pool to every rollout (:mod:`mapless.train.buffers`). A gradient :meth:`grad` returns stays
+        pool to every rollout (:mod:`mapless.agent.buffers`). A gradient :meth:`grad` returns stays
         valid until the pool's next rollout computes its own."""
         self.cell = cell
         self.record = record

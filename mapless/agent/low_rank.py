@@ -2,7 +2,7 @@
 gradients of their factors summed once instead of formed at every step.
 
 After i inner steps, episode b's LSTM matrices are ``W_0 + Σ_k left[b, k]ᵀ right[b, k]`` (``left``
-``[B, K, 4H]``, ``right`` ``[B, K, D + H]``, :mod:`mapless.train.meta`), so a step adds
+``[B, K, 4H]``, ``right`` ``[B, K, D + H]``, :mod:`mapless.agent.meta`), so a step adds
 ``(right · x) · left`` to the gates of its input row x. Plain autograd differentiates that per step:
 every step's backward forms full ``[B, K, D + H]`` and ``[B, K, 4H]`` outer products for the two
 factors and adds them up, and so does every inner step's backward product (second order). At

@@ -53,11 +53,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
+from mapless.agent.buffers import BufferPool
+from mapless.agent.low_rank import LowRankUpdates, apply_low_rank
+from mapless.agent.precision import encoder_autocast, like
+from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
 from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
-from mapless.train.buffers import BufferPool
-from mapless.train.low_rank import LowRankUpdates, apply_low_rank
-from mapless.train.precision import encoder_autocast, like
-from mapless.train.rollout_lstm import RolloutLstm, accumulate_grad
 
 #: LSTM matrices whose per-episode updates are kept in low rank during meta-training.
 LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
@@ -161,7 +161,7 @@ class InnerLoop:
         self.max_updates = model.config.max_inner_updates if max_updates is None else max_updates
         self.first_order = first_order
         self.meta_train = meta_train
-        self.dtype = dtype  # compute dtype of the encoders and θ_0's LSTM products (train/precision.py)
+        self.dtype = dtype  # compute dtype of the encoders and θ_0's LSTM products (agent/precision.py)
         self.names = model.inner_parameter_names()
         if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
             raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
@@ -391,7 +391,7 @@ class InnerLoop:
 
     @staticmethod
     def _set_low_rank(state: InnerLoopState, left: Tensor, right: Tensor) -> None:
-        """New factors for the steps to come (their gradients are summed once, mapless.train.low_rank)."""
+        """New factors for the steps to come (their gradients are summed once, mapless.agent.low_rank)."""
         state.low_rank = LowRankUpdates(left, right)
         state.left, state.right = state.low_rank.left, state.low_rank.right
 

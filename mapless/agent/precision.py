@@ -2,7 +2,7 @@
 
 ``bf16`` changes the two places of a training rollout where the arithmetic is:
 
-* the LSTM's weight products (:class:`~mapless.train.rollout_lstm.RolloutLstm` with
+* the LSTM's weight products (:class:`~mapless.agent.rollout_lstm.RolloutLstm` with
   ``dtype=torch.bfloat16``): the forward products, the inner steps' backward products, the weight
   gradient;
 * the observation encoders (GCNs, 1x1 convolutions, embeddings) run under ``torch.autocast`` to
