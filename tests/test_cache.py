@@ -36,7 +36,9 @@ def test_every_parameter_changes_the_fingerprint():
         assert cache.fingerprint(SimConfig(**{**FAST.as_dict(), **change})) != base
 
 
-@pytest.mark.parametrize("damage", ["truncate", "garbage", "other_fingerprint", "flipped_array"])
+@pytest.mark.parametrize(
+    "damage", ["truncate", "garbage", "other_fingerprint", "flipped_array", "other_scene"]
+)
 def test_damaged_entries_are_detected_and_rebuilt(tmp_path, damage):
     original = cache.load_or_build(SCENE, FAST, tmp_path)
     path = cache.cache_path(SCENE, FAST, tmp_path)
@@ -50,6 +52,8 @@ def test_damaged_entries_are_detected_and_rebuilt(tmp_path, damage):
         header = json.loads(str(arrays["header"]))
         if damage == "other_fingerprint":
             header["fingerprint"] = "0" * 16
+        elif damage == "other_scene":  # another scene's valid file copied over this one's
+            header["scene"] = "FloorPlan424"
         else:
             arrays["successors"] = arrays["successors"][::-1].copy()
         arrays["header"] = np.array(json.dumps(header))
@@ -77,3 +81,24 @@ def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path):
     library.prepare([SCENE, "FloorPlan25"], progress=False)
     assert cache.build_many([SCENE, "FloorPlan25"], FAST, tmp_path, missing_only=True) == []
     assert [kept.stat().st_mtime_ns, added.stat().st_mtime_ns] == stamps
+
+
+def test_every_one_byte_flip_is_detected_or_harmless(tmp_path):
+    """Random one-byte flips anywhere in a cached scene (the deflate streams included): loading
+    either raises StaleCacheError, which load_or_build answers by rebuilding, or returns the data."""
+    original = cache.load_or_build(SCENE, FAST, tmp_path)
+    path = cache.cache_path(SCENE, FAST, tmp_path)
+    good = path.read_bytes()
+    rng = np.random.default_rng(0)
+    detected = 0
+    for offset in rng.integers(0, len(good), 60):
+        damaged = bytearray(good)
+        damaged[offset] ^= 0xFF
+        path.write_bytes(bytes(damaged))
+        try:
+            loaded = cache.load(path, FAST)
+        except cache.StaleCacheError:
+            detected += 1
+            continue
+        np.testing.assert_array_equal(loaded.successors, original.successors)
+    assert detected > 0

@@ -12,7 +12,6 @@ import functools
 import hashlib
 import json
 import os
-import zipfile
 from importlib import resources
 from pathlib import Path
 
@@ -87,10 +86,14 @@ def load(path: Path, config: SimConfig) -> SceneData:
         with np.load(path, allow_pickle=False) as npz:
             header = json.loads(str(npz["header"]))
             arrays = {name: npz[name] for name in _ARRAY_FIELDS}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
-        raise StaleCacheError(f"{path}: unreadable ({error})") from error
+        if not isinstance(header, dict):
+            raise ValueError("the header is not a mapping")
+    except Exception as error:  # any failure to read (zlib, zip, json, ...) means a corrupt file
+        raise StaleCacheError(f"{path}: unreadable ({type(error).__name__}: {error})") from error
     if header.get("fingerprint") != fingerprint(config):
         raise StaleCacheError(f"{path}: built with other simulator parameters")
+    if header.get("scene") != path.stem:
+        raise StaleCacheError(f"{path}: holds scene {header.get('scene')!r}, not {path.stem!r}")
     if header.get("checksum") != _checksum(arrays):
         raise StaleCacheError(f"{path}: checksum mismatch")
     return SceneData(
