@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from train_fixtures import fixture_library, tiny_config
@@ -232,3 +233,46 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_its_last_checkpoint(
     assert after["counters"] == before["counters"]
     for key, value in before["model"].items():
         assert torch.equal(value, after["model"][key]) and torch.isfinite(value).all(), key
+
+
+def test_the_shortest_path_expert_succeeds_on_an_optimal_path() -> None:
+    import numpy as np
+
+    from mapless.episodes.sampler import TrainingSampler
+    from mapless.sim.vector import BatchedNavEnv
+
+    library = fixture_library()
+    scenes = ["FloorPlan1", "FloorPlan2"]
+    sampler = TrainingSampler(library, scenes, seed=3, require_reachable=True)
+    rng = np.random.default_rng(0)
+    env = BatchedNavEnv(library, scenes, 16, mode="train", max_steps=50)
+    episodes = [sampler.sample(rng) for _ in range(16)]
+    env.reset(np.arange(16), episodes)
+    optimal = env.optimal_length.copy()
+    success = np.zeros(16, dtype=bool)
+    while not env.done.all():
+        actions = env.expert_actions()
+        assert (actions[~env.done] >= 0).all()
+        success |= env.step(np.maximum(actions, 0)).success
+    assert success.all()
+    np.testing.assert_array_equal(env.steps, optimal)  # SPL 1: the optimal length, Done included
+    assert (optimal > 1).any(), "some episodes should need moves"
+    assert (env.expert_actions() == -1).all()  # nothing to say once every episode is over
+
+
+def test_imitation_pulls_the_policy_toward_the_expert() -> None:
+    overrides = ("algo=ppo", "ppo.envs=8", "ppo.steps=8", "ppo.minibatches=2", "episodes=0", "frames=1500")
+    config = tiny_config(
+        "mlp",
+        *overrides,
+        "ppo.imitation_coef=5",
+        "ppo.entropy_coef=0",
+        "ppo.lr=0.003",
+        "checkpoint_every=100000",
+    )
+    trainer = PPOTrainer(config, None, fixture_library)
+    trainer._setup(None)
+    losses = [trainer.update()["scalars"]["ppo/imitation_loss"] for _ in range(12)]
+    # From chance (log 6 = 1.79 nats) the cross-entropy to the expert falls on the agent's own steps.
+    assert losses[0] > 1.6
+    assert np.mean(losses[-3:]) < losses[0] - 0.4

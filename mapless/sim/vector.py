@@ -86,6 +86,9 @@ class BatchedNavEnv:
         self.target_embedding = np.zeros((b, 300), dtype=np.float32)
         self.target_index = np.full(b, -1, dtype=np.int64)
         self.optimal_length = np.full(b, -1, dtype=np.int64)
+        #: per slot, the BFS distance (in moves) from each of its scene's poses to the target's
+        #: goal poses, for the shortest-path expert (None: unknown, e.g. instance-restricted targets)
+        self._distances: list[np.ndarray | None] = [None] * b
         self.seen_parents = np.zeros((b, n_cat), dtype=bool)
         self.parent_weights = np.zeros((b, n_cat), dtype=np.float32)
         self.episodes: list[Episode | None] = [None] * b
@@ -129,7 +132,28 @@ class BatchedNavEnv:
                 d = int(data.target_distances(episode.target)[local]) if not episode.target_ids else -1
                 optimal = d + 1 if d >= 0 else -1
             self.optimal_length[slot] = optimal
+            self._distances[slot] = None if episode.target_ids else data.target_distances(episode.target)
             self.episodes[slot] = episode
+
+    def expert_actions(self) -> np.ndarray:
+        """The shortest-path expert's action in every slot (-1 where none is known or the episode is
+        over): ``Done`` where a target instance is visible, else the first movement action
+        (MoveAhead, RotateLeft, RotateRight, LookUp, LookDown) that brings the agent one move
+        closer to a pose that sees the target."""
+        actions = np.full(self.batch_size, -1, dtype=np.int64)
+        for slot in np.flatnonzero(~self.done):
+            distances = self._distances[slot]
+            if distances is None:
+                continue
+            offset = self.scene_offset[self.episodes[slot].scene]
+            pose = self.pose[slot] - offset
+            distance = distances[pose]
+            if distance == 0:
+                actions[slot] = DONE
+            elif distance > 0:
+                closer = distances[self.successors[self.pose[slot]] - offset] == distance - 1
+                actions[slot] = int(np.argmax(closer))
+        return actions
 
     def at_goal(self) -> np.ndarray:
         keys = self.goal * self.n_poses + self.pose

@@ -151,6 +151,9 @@ class PPOConfig:
     clip: surrogate clip ε; value_clip: clip of the value change (0 = off).
     entropy_coef, value_coef: loss weights; max_grad_norm: gradient-norm clip (0 = off).
     gamma, lam: discount and GAE λ; normalize_advantages: per minibatch.
+    imitation_coef: weight of an imitation term, the cross-entropy of the policy to the simulator's
+        shortest-path expert on the agent's own steps (DAgger-style); 0 = off, the paper's protocol.
+    imitation_frames: the weight falls linearly to 0 over this many frames (0 = constant).
     """
 
     envs: int = 64
@@ -168,8 +171,13 @@ class PPOConfig:
     gamma: float = 0.99
     lam: float = 0.95
     normalize_advantages: bool = True
+    imitation_coef: float = 0.0
+    imitation_frames: int = 0
 
     def __post_init__(self) -> None:
+        _require(
+            self.imitation_frames >= 0, "ppo.imitation_frames", f"must be >= 0, got {self.imitation_frames}"
+        )
         for key in ("envs", "steps", "epochs", "minibatches"):
             _require(getattr(self, key) >= 1, f"ppo.{key}", f"must be >= 1, got {getattr(self, key)}")
         _require(
@@ -181,7 +189,7 @@ class PPOConfig:
         for key in ("lr", "adam_eps"):
             value = getattr(self, key)
             _require(_finite(value) and 0 < value <= 1, f"ppo.{key}", f"must lie in (0, 1], got {value}")
-        for key in ("clip", "value_clip", "entropy_coef", "value_coef", "max_grad_norm"):
+        for key in ("clip", "value_clip", "entropy_coef", "value_coef", "max_grad_norm", "imitation_coef"):
             value = getattr(self, key)
             _require(_finite(value) and value >= 0, f"ppo.{key}", f"must be finite and >= 0, got {value}")
         _require(0 < self.gamma <= 1, "ppo.gamma", f"must lie in (0, 1], got {self.gamma}")

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from mapless.agent.acting import observation_keys
@@ -56,6 +57,9 @@ _LOSS_KEYS = ("total", "policy", "value", "entropy", "approx_kl", "clip_fraction
 class PPOTrainer(BatchedTrainer):
     label = "ppo"
 
+    _imitation = 0.0  # this update's imitation weight (ppo.imitation_coef, annealed)
+    _imitation_loss = 0.0
+
     def _setup(self, resume: dict | None) -> None:
         cfg, rank = self.config, self.ctx.rank
         configure_torch(cfg.threads)
@@ -70,7 +74,13 @@ class PPOTrainer(BatchedTrainer):
         self.env = training_env(cfg, library, cfg.ppo.envs)
         adaptive = self.model.adaptive
         self.collector = SegmentCollector(
-            self.model, self.env, self.sampler, self.obs_keys, self.device, whole_episodes=adaptive
+            self.model,
+            self.env,
+            self.sampler,
+            self.obs_keys,
+            self.device,
+            whole_episodes=adaptive,
+            expert=cfg.ppo.imitation_coef > 0,
         )
         self.inner = InnerLoop(self.model, first_order=cfg.meta.first_order) if adaptive else None
         if resume is not None:
@@ -102,9 +112,11 @@ class PPOTrainer(BatchedTrainer):
             ppo.lam,
         )
         lr = self._learning_rate()
+        self._imitation = self._imitation_weight()
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         sums = dict.fromkeys(_LOSS_KEYS, 0.0)
+        self._imitation_loss = 0.0
         grad_norms = []
         slots = segment.mask.shape[1]
         for _ in range(ppo.epochs):
@@ -123,7 +135,12 @@ class PPOTrainer(BatchedTrainer):
             "segment": segment,
             "losses": {key: value / passes for key, value in sums.items()},
             "grad_norm": float(np.mean(grad_norms)),
-            "scalars": {"ppo/explained_variance": explained, "ppo/lr": lr},
+            "scalars": {
+                "ppo/explained_variance": explained,
+                "ppo/lr": lr,
+                "ppo/imitation_coef": self._imitation,
+                "ppo/imitation_loss": self._imitation_loss / passes,
+            },
         }
 
     def _learning_rate(self) -> float:
@@ -135,6 +152,12 @@ class PPOTrainer(BatchedTrainer):
         else:
             done = self.counters["episodes"] / cfg.episodes
         return cfg.ppo.lr * max(1.0 - done, 0.0)
+
+    def _imitation_weight(self) -> float:
+        ppo = self.config.ppo
+        if ppo.imitation_frames == 0:
+            return ppo.imitation_coef
+        return ppo.imitation_coef * max(1.0 - self.counters["frames"] / ppo.imitation_frames, 0.0)
 
     def _minibatch_step(
         self, segment: Segment, columns: Tensor, advantages: Tensor, returns: Tensor
@@ -173,10 +196,18 @@ class PPOTrainer(BatchedTrainer):
             value_coef=ppo.value_coef,
             entropy_coef=ppo.entropy_coef,
         )
+        total = loss.total
+        if self._imitation > 0:
+            expert = segment.expert[:steps, columns]
+            known = (expert >= 0) & (mask[:steps] > 0)
+            if bool(known.any()):
+                imitation = F.cross_entropy(logits[known], expert[known])
+                total = total + self._imitation * imitation
+                self._imitation_loss += float(imitation.detach())
         if state is None:
-            loss.total.backward()
+            total.backward()
         else:
-            self.inner.backward(state, loss.total)
+            self.inner.backward(state, total)
         return PPOLoss(*(t.detach() for t in loss))
 
     def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:

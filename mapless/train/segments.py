@@ -50,6 +50,7 @@ class Segment:
     truncated: Tensor  # [T, N] bool
     bootstrap: Tensor  # [T, N] V(s_{t+1}) of truncated steps, 0 elsewhere
     mask: Tensor  # [T, N] 1 where the slot took a step (whole episodes: 0 after the end)
+    expert: Tensor  # [T, N] the shortest-path expert's action, -1 where none (or not recorded)
     hidden: tuple[Tensor, Tensor]  # [N, H] before the first step
     next_value: Tensor  # [N] V after the last step (0 where the episode ended)
     finished: dict[str, np.ndarray]  # success, spl, length, reward of the episodes that ended
@@ -71,6 +72,7 @@ _RECORDED = (
     "truncated",
     "bootstrap",
     "mask",
+    "expert",
 )
 
 
@@ -90,10 +92,13 @@ class SegmentCollector:
         obs_keys: tuple[str, ...],
         device: torch.device,
         whole_episodes: bool,
+        expert: bool = False,
     ):
+        """``expert``: record the shortest-path expert's action at every step (imitation)."""
         self.model, self.env, self.sampler = model, env, sampler
         self.obs_keys, self.device = obs_keys, device
         self.whole_episodes = whole_episodes
+        self.expert = expert
         n = env.batch_size
         self.hidden = model.initial_state(n, device)
         self.prev_policy = torch.zeros(n, NUM_ACTIONS, device=device)
@@ -184,6 +189,7 @@ class SegmentCollector:
             logits = out.logits.detach()
             noise = torch.as_tensor(rng.random(n), dtype=torch.float32, device=device)
             action = sample_actions(logits, noise)
+            expert = env.expert_actions() if self.expert else np.full(n, -1)
             step = env.step(action.cpu().numpy())
             bootstrap = torch.zeros(n, device=device)
             hidden = tuple(t.detach() for t in out.hidden)
@@ -222,6 +228,7 @@ class SegmentCollector:
                 ("truncated", torch.as_tensor(step.truncated & ~cut_is_end, device=device)),
                 ("bootstrap", bootstrap),
                 ("mask", torch.as_tensor(active_before, dtype=torch.float32, device=device)),
+                ("expert", torch.as_tensor(expert, device=device)),
             ):
                 record[key].append(value)
             self.hidden, self.prev_policy = hidden, policy
