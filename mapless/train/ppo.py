@@ -17,6 +17,10 @@ learned interaction loss, and the meta-gradient (second order, or first order wi
 flows through the adaptation. The probability ratio is that of the adapted policy against the
 adapted policy that acted.
 
+With ``ppo.imitation_coef`` > 0 the loss also holds the cross-entropy to the simulator's
+shortest-path expert on the agent's own steps (an imitation warm start, annealed over
+``ppo.imitation_frames``; off in the paper's protocol).
+
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
 that acted with the same function under new parameters. The run folder, checkpoints, budget, logs
 and graceful stop are the batched trainer's (:class:`~mapless.train.batched.BatchedTrainer`).
