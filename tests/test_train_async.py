@@ -71,6 +71,19 @@ def test_a_failing_worker_reports_its_traceback(tmp_path: Path) -> None:
         AsyncTrainer(config, tmp_path, broken_library).run()
 
 
-def test_async_refuses_cuda() -> None:
+def test_async_refuses_cuda(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
     with pytest.raises(Exception, match="async"):
         AsyncTrainer(tiny_config("a3c", "mode=async", "device=cuda"), None)
+
+
+@pytest.mark.parametrize(
+    ("device", "message"), [("cuda", "sees no CUDA device"), ("cudaXYZ", "cuda\\[:N\\]")]
+)
+def test_a_device_this_build_cannot_use_is_a_config_error(device: str, message: str) -> None:
+    from mapless.config import ConfigError
+
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(ConfigError, match=message):
+        tiny_config("a3c", f"device={device}")

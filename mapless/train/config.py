@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -278,10 +279,18 @@ class TrainConfig:
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(
-            self.device == "cpu" or self.device.startswith("cuda"),
+            re.fullmatch(r"cpu|cuda(:\d+)?", self.device) is not None,
             "device",
             f"must be 'cpu' or 'cuda[:N]', got {self.device!r}",
         )
+        if self.device != "cpu":
+            import torch
+
+            _require(
+                torch.cuda.is_available(),
+                "device",
+                f"{self.device!r} asked for, but this PyTorch build sees no CUDA device (torch {torch.__version__})",
+            )
         _require(
             self.model.category_set == self.env.sim.category_set,
             "model.category_set",
