@@ -272,3 +272,15 @@ def test_sigint_stops_at_a_checkpoint_and_sigkill_loses_only_the_work_since_the_
     assert done.returncode == 0, done.stderr
     assert _state(run_dir)["counters"]["episodes"] == killed["episodes"] + 8
     assert (run_dir / ckpt.FINAL_MODEL_FILE).is_file()
+
+
+def test_a_resumed_run_removes_the_torn_writes_of_a_killed_one(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=8", "checkpoint_every=4"), run, library_factory=fixture_library)
+    torn = [run / ".checkpoint.pt.0badc0de.tmp", run / "checkpoints" / ".model_0000000012.pt.0badc0de.tmp"]
+    for path in torn:
+        path.write_bytes(b"half a checkpoint")
+    config, state = resume_config(run, ["episodes=12"])
+    train(config, run, resume=state, library_factory=fixture_library)
+    assert not any(path.exists() for path in torn)
+    assert not list(run.rglob("*.tmp"))

@@ -32,6 +32,15 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
     return from_dict(TrainConfig, data), payload
 
 
+def remove_torn_writes(run_dir: Path) -> None:
+    """Delete the temporary files of writes a killed run left half done (``.<name>.<hex>.tmp``,
+    :func:`mapless.files.replacing`): the file they were to replace is intact, and they can be as
+    large as a checkpoint."""
+    for folder in (run_dir, run_dir / ckpt.SNAPSHOT_DIR):
+        for torn in folder.glob(".*.tmp"):
+            torn.unlink(missing_ok=True)
+
+
 def train(
     config: TrainConfig,
     run_dir: str | Path,
@@ -54,6 +63,7 @@ def train(
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
+            remove_torn_writes(run_dir)
             save_config(config, run_dir / ckpt.CONFIG_FILE)
         if library_factory is None and ctx.local_rank == 0:
             prepare_scenes(config)  # once per machine: each has its own scene cache
