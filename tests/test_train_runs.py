@@ -284,3 +284,15 @@ def test_a_resumed_run_removes_the_torn_writes_of_a_killed_one(tmp_path: Path) -
     train(config, run, resume=state, library_factory=fixture_library)
     assert not any(path.exists() for path in torn)
     assert not list(run.rglob("*.tmp"))
+
+
+def test_a_run_folder_in_use_refuses_a_second_trainer(tmp_path: Path) -> None:
+    from mapless.errors import MaplessError
+    from mapless.train.run import run_folder_lock
+
+    run = tmp_path / "run"
+    run.mkdir()
+    with run_folder_lock(run), pytest.raises(MaplessError, match="in use by another trainer"):
+        train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)  # free again
+    assert (run / ckpt.FINAL_MODEL_FILE).is_file()

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from mapless.config import ConfigError, apply_overrides, from_dict, save_config
+from mapless.errors import MaplessError
 from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
@@ -30,6 +34,29 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
         raise ckpt.CheckpointError(f"{run_dir / ckpt.CHECKPOINT_FILE} is not a resumable checkpoint")
     data = apply_overrides(payload["config"], overrides or [])
     return from_dict(TrainConfig, data), payload
+
+
+LOCK_FILE = ".lock"
+
+
+@contextlib.contextmanager
+def run_folder_lock(run_dir: Path) -> Iterator[None]:
+    """Hold ``run_dir``'s lock while a trainer writes there: a second trainer (two ``--resume`` of
+    one run) is refused instead of writing a second set of logs and checkpoints. The operating system
+    releases the lock when the process ends, however it ends."""
+    handle = open(run_dir / LOCK_FILE, "a+")  # noqa: SIM115 - held for the whole run
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise MaplessError(
+            f"{run_dir} is in use by another trainer; wait for it to end or stop it first"
+        ) from None
+    try:
+        yield
+    finally:
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
 
 
 def remove_torn_writes(run_dir: Path) -> None:
@@ -57,12 +84,14 @@ def train(
         raise ConfigError(
             "config key 'mode': async (Hogwild) runs on one machine; use mode=batched under torchrun"
         )
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(dist.shutdown, ctx)
         run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
         if resume is not None and ckpt.config_of(resume).model != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
+            stack.enter_context(run_folder_lock(run_dir))
             remove_torn_writes(run_dir)
             save_config(config, run_dir / ckpt.CONFIG_FILE)
         if library_factory is None and ctx.local_rank == 0:
@@ -72,5 +101,3 @@ def train(
             return AsyncTrainer(config, run_dir, library_factory).run(resume)
         trainer = PPOTrainer if config.algo == "ppo" else BatchedTrainer
         return trainer(config, run_dir, library_factory, ctx).run(resume)
-    finally:
-        dist.shutdown(ctx)
