@@ -296,3 +296,11 @@ def test_a_run_folder_in_use_refuses_a_second_trainer(tmp_path: Path) -> None:
         train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
     train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)  # free again
     assert (run / ckpt.FINAL_MODEL_FILE).is_file()
+
+
+@pytest.mark.parametrize("override", ["seed=7", "model.hidden_size=8", "algo=ppo", "batch_size=2"])
+def test_resume_refuses_settings_the_checkpoint_depends_on(tmp_path: Path, override: str) -> None:
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
+    with pytest.raises(ConfigError, match="a resumed run keeps"):
+        resume_config(run, ["episodes=8", override])

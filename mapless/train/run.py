@@ -32,11 +32,19 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
     payload = ckpt.load_file(run_dir / ckpt.CHECKPOINT_FILE)
     if payload.get("kind") != "checkpoint":
         raise ckpt.CheckpointError(f"{run_dir / ckpt.CHECKPOINT_FILE} is not a resumable checkpoint")
+    fixed = [o for o in overrides or [] if o.split("=", 1)[0].strip().startswith(FIXED_ON_RESUME)]
+    if fixed:
+        raise ConfigError(
+            f"config key {fixed[0].split('=', 1)[0]!r}: a resumed run keeps its model, seed, algorithm, mode "
+            "and batch layout (the checkpoint's state was made with them); start a new run to change them"
+        )
     data = apply_overrides(payload["config"], overrides or [])
     return from_dict(TrainConfig, data), payload
 
 
 LOCK_FILE = ".lock"
+#: Settings a checkpoint's state depends on: ``--resume --set`` may not change them.
+FIXED_ON_RESUME = ("model.", "seed", "algo", "mode", "batch_size", "workers", "ppo.envs", "env.scenes")
 
 
 @contextlib.contextmanager
