@@ -295,3 +295,55 @@ def test_import_onto_an_offline_root_keeps_its_object_ids(sample, floorplan425, 
     for e in episodes:  # the stored shortest paths are the offline root's
         goal = offline.goal_mask_for_instances(offline.goal_instances(e.target, e.target_ids))
         assert e.optimal_length == offline.distances_to(goal)[offline.pose_index[pose_key(*e.start)]] + 1
+
+
+class _ObjectFieldDtype:
+    """Pickles as a structured dtype with an object field whose state claims it holds no objects."""
+
+    def __reduce__(self):
+        return np.dtype, ("V8", False, True), (3, "|", None, ("a",), {"a": (np.dtype("O"), 0)}, 8, 1, 0)
+
+
+class _ArrayFromBytes:
+    """Pickles as numpy's array reconstruction of raw bytes with a given dtype."""
+
+    def __init__(self, dtype, data: bytes, shape=(1,)):
+        self.dtype, self.data, self.shape = dtype, data, shape
+
+    def __reduce__(self):
+        from numpy._core.multiarray import _reconstruct
+
+        return _reconstruct, (np.ndarray, (0,), b"b"), (1, self.shape, self.dtype, False, self.data)
+
+
+def _episode_file(tmp_path, embedding) -> Path:
+    path = tmp_path / "crafted.pkl"
+    entry = {"scene": "FloorPlan1", "goal_object_type": "Mug", "task_data": [], "state": "0.00|0.00|0|0"}
+    path.write_bytes(pickle.dumps([{**entry, "glove_embedding": embedding}]))
+    return path
+
+
+@pytest.mark.parametrize(
+    "embedding",
+    [
+        _ArrayFromBytes(_ObjectFieldDtype(), b"\x41" * 8),  # a pointer smuggled into an object field
+        np.zeros(2, dtype=[("a", "f4"), ("b", "i4")]),  # any structured dtype
+        np.array([1, "x"], dtype=object),  # object arrays
+        _ArrayFromBytes(np.dtype("f8"), b"\x00" * 7, shape=(1,)),  # bytes that do not fill the shape
+        _ArrayFromBytes(np.dtype("f8"), b"\x00" * 8, shape=(-1,)),  # a negative size
+    ],
+    ids=["object-field", "structured", "object-array", "short-data", "negative-shape"],
+)
+def test_crafted_arrays_are_refused_without_touching_memory(tmp_path, embedding):
+    with pytest.raises(OfflineFormatError, match="not a readable episode pickle"):
+        read_episode_file(_episode_file(tmp_path, embedding))
+
+
+def test_plain_numeric_arrays_still_load_exactly(tmp_path):
+    vector = np.arange(300, dtype=np.float32) / 7
+    episodes, bad = read_episode_file(_episode_file(tmp_path, vector))
+    assert not bad
+    np.testing.assert_array_equal(episodes[0].embedding, vector.astype(np.float64))
+    fortran = np.asfortranarray(np.arange(6, dtype=">i4").reshape(2, 3))
+    episodes, _ = read_episode_file(_episode_file(tmp_path, fortran))
+    np.testing.assert_array_equal(episodes[0].embedding, fortran)

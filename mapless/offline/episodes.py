@@ -21,6 +21,7 @@ import copyreg
 import io
 import math
 import pickle
+import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,10 +101,97 @@ def _safe_load_from_bytes(data: bytes) -> Any:
     return torch.load(io.BytesIO(data), weights_only=True)
 
 
+#: dtype names a pickled array may have: booleans and plain numbers of the usual widths.
+_NUMERIC_DTYPE = re.compile(r"[biufc]\d{1,2}")
+
+
+class _PickledDtype:
+    """``numpy.dtype(name, align, copy)`` of a pickle, checked when its state arrives: only plain
+    numeric types (kinds b, i, u, f, c; no fields, no sub-arrays) become a dtype."""
+
+    def __init__(self, name: Any = "", align: Any = False, copy: Any = False):
+        self.name = name
+        self.dtype: np.dtype | None = None
+
+    def __setstate__(self, state: Any) -> None:
+        order = state[1] if isinstance(state, tuple) and len(state) > 1 else "|"
+        subarray = state[2] if isinstance(state, tuple) and len(state) > 2 else None
+        fields = state[3:5] if isinstance(state, tuple) and len(state) > 4 else (None, None)
+        if not (isinstance(self.name, str) and _NUMERIC_DTYPE.fullmatch(self.name)):
+            raise pickle.UnpicklingError(f"array dtype {self.name!r} is not a plain numeric type")
+        if subarray is not None or any(f is not None for f in fields) or order not in ("<", ">", "|", "="):
+            raise pickle.UnpicklingError(
+                f"array dtype {self.name!r} has fields, sub-arrays or a bad byte order"
+            )
+        self.dtype = np.dtype(self.name).newbyteorder(order if order != "|" else "=")
+
+    def resolve(self) -> np.dtype:
+        if self.dtype is None:
+            self.__setstate__(())
+        return self.dtype
+
+
+def _dtype_of(value: Any) -> np.dtype:
+    if not isinstance(value, _PickledDtype):
+        raise pickle.UnpicklingError(f"array dtype given as {type(value).__name__}")
+    return value.resolve()
+
+
+class _PickledArray:
+    """A numpy array of a pickle (``_reconstruct`` then its state), rebuilt by :meth:`array` from a
+    checked shape, dtype and the exact number of bytes; anything else is an UnpicklingError."""
+
+    def __init__(self, *args: Any):
+        self.state: Any = None
+
+    def __setstate__(self, state: Any) -> None:
+        self.state = state
+
+    def array(self) -> np.ndarray:
+        state = self.state
+        if not (isinstance(state, tuple) and len(state) == 5):
+            raise pickle.UnpicklingError("array state is not (version, shape, dtype, fortran, data)")
+        _, shape, dtype, fortran, data = state
+        dtype = _dtype_of(dtype)
+        if not (isinstance(shape, tuple) and all(isinstance(n, int) and 0 <= n < 2**31 for n in shape)):
+            raise pickle.UnpicklingError(f"array shape {shape!r} is not a tuple of sizes")
+        if not isinstance(data, bytes | bytearray):
+            raise pickle.UnpicklingError("array data is not raw bytes (object arrays are refused)")
+        count = int(np.prod(shape, dtype=np.int64))
+        if len(data) != count * dtype.itemsize:
+            raise pickle.UnpicklingError(f"array of shape {shape} and dtype {dtype} with {len(data)} bytes")
+        flat = np.frombuffer(bytes(data), dtype=dtype, count=count)
+        return flat.reshape(shape, order="F" if fortran else "C").copy()
+
+
+def _pickled_scalar(dtype: Any, data: Any = b"") -> Any:
+    dtype = _dtype_of(dtype)
+    if not isinstance(data, bytes) or len(data) != dtype.itemsize:
+        raise pickle.UnpicklingError(f"numpy scalar of dtype {dtype} with {len(data)} bytes")
+    return np.frombuffer(data, dtype=dtype, count=1)[0]
+
+
+def _materialize(value: Any, depth: int = 0) -> Any:
+    """The unpickled structure with every :class:`_PickledArray` rebuilt as an ndarray."""
+    if depth > 50:
+        raise pickle.UnpicklingError("episode data nested deeper than 50 levels")
+    if isinstance(value, _PickledArray):
+        return value.array()
+    if isinstance(value, _PickledDtype):
+        return value.resolve()
+    if isinstance(value, list):
+        return [_materialize(v, depth + 1) for v in value]
+    if isinstance(value, tuple):
+        return tuple(_materialize(v, depth + 1) for v in value)
+    if isinstance(value, dict):
+        return {k: _materialize(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, Placeholder):
+        value.__dict__.update({k: _materialize(v, depth + 1) for k, v in value.__dict__.items()})
+    return value
+
+
 def _safe_globals() -> dict[tuple[str, str], Any]:
     import builtins
-
-    from numpy._core import multiarray
 
     allowed: dict[tuple[str, str], Any] = {}
     for name in (
@@ -129,11 +217,14 @@ def _safe_globals() -> dict[tuple[str, str], Any]:
     allowed[("copy_reg", "_reconstructor")] = copyreg._reconstructor
     allowed[("_codecs", "encode")] = __import__("codecs").encode
     allowed[("collections", "OrderedDict")] = collections.OrderedDict
+    # numpy's own reconstructors would trust the file's dtype and byte states (a crafted structured
+    # dtype can smuggle a pointer into an "object" field): arrays are rebuilt here from plain numeric
+    # states only (:class:`_PickledArray`), after the whole file is read.
     for module in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        allowed[(module, "_reconstruct")] = multiarray._reconstruct
-        allowed[(module, "scalar")] = multiarray.scalar
-    allowed[("numpy", "dtype")] = np.dtype
-    allowed[("numpy", "ndarray")] = np.ndarray
+        allowed[(module, "_reconstruct")] = _PickledArray
+        allowed[(module, "scalar")] = _pickled_scalar
+    allowed[("numpy", "dtype")] = _PickledDtype
+    allowed[("numpy", "ndarray")] = _PickledArray
     try:
         import torch._utils
     except ImportError:  # without torch, tensors stay placeholders
@@ -213,7 +304,7 @@ def read_episode_file(path: str | Path) -> tuple[list[RawEpisode], list[tuple[in
         raise OfflineFormatError(path, "no such episode file")
     try:
         with path.open("rb") as f:
-            data = EpisodeUnpickler(f).load()
+            data = _materialize(EpisodeUnpickler(f).load())
     except (
         pickle.UnpicklingError,
         EOFError,
@@ -224,6 +315,7 @@ def read_episode_file(path: str | Path) -> tuple[list[RawEpisode], list[tuple[in
         IndexError,
         KeyError,
         RuntimeError,
+        RecursionError,
     ) as error:
         raise OfflineFormatError(
             path, f"not a readable episode pickle ({type(error).__name__}: {error})"
