@@ -304,3 +304,56 @@ def test_resume_refuses_settings_the_checkpoint_depends_on(tmp_path: Path, overr
     train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
     with pytest.raises(ConfigError, match="a resumed run keeps"):
         resume_config(run, ["episodes=8", override])
+
+
+def test_sigterm_takes_the_graceful_path_of_ctrl_c() -> None:
+    from mapless.train.common import GracefulStop
+
+    with GracefulStop() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # the handler runs between bytecodes of this thread
+        assert stop.requested
+        with pytest.raises(KeyboardInterrupt):  # a second signal aborts
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is put back
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_async_workers_do_not_outlive_a_killed_trainer(tmp_path: Path) -> None:
+    config = tmp_path / "train.yaml"
+    budget = {"model": {"name": "a3c", "hidden_size": 16}, "env": {"scenes": "FloorPlan401"},
+              "mode": "async", "workers": 2, "episodes": 1_000_000, "checkpoint_every": 8,
+              "log_every": 4, "progress": False}  # fmt: skip
+    config.write_text(yaml.safe_dump(budget))
+    run_dir = tmp_path / "run"
+    trainer = subprocess.Popen([sys.executable, "-m", "mapless", "train", str(config), "--run-dir", str(run_dir)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    _wait_for((run_dir / ckpt.CHECKPOINT_FILE).exists, trainer)
+    workers = _children(trainer.pid)
+    assert len(workers) >= 2
+    trainer.kill()
+    trainer.communicate(timeout=60)
+    deadline = time.monotonic() + 60
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(pid) for pid in workers), "workers kept training after their trainer died"

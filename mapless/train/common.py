@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import time
 from collections.abc import Callable
@@ -139,28 +140,32 @@ def seed_for(config: TrainConfig, *stream: int) -> int:
 
 
 class GracefulStop:
-    """First SIGINT: finish the current update, checkpoint and stop. Second SIGINT: abort at once."""
+    """First SIGINT or SIGTERM (what schedulers and ``timeout`` send): finish the current update,
+    checkpoint and stop. A second one aborts at once."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self) -> None:
         self.requested = False
-        self._previous: Any = None
+        self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> GracefulStop:
-        try:
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        except ValueError:  # not the main thread (e.g. a test harness): no handler, no graceful stop
-            self._previous = None
+        for signum in self.SIGNALS:
+            # Outside the main thread (e.g. a test harness) there is no handler and no graceful stop.
+            with contextlib.suppress(ValueError):
+                self._previous[signum] = signal.signal(signum, self._handle)
         return self
 
     def _handle(self, signum: int, frame: Any) -> None:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        print("\nmapless: stopping after this update (Ctrl-C again to abort)", flush=True)
+        name = signal.Signals(signum).name
+        print(f"\nmapless: {name}: stopping after this update (again to abort)", flush=True)
 
     def __exit__(self, *exc: object) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
 
 
 def run_summary(

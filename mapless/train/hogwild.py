@@ -21,6 +21,7 @@ is not bit-reproducible anyway; the batched trainer is).
 
 from __future__ import annotations
 
+import os
 import queue as queue_module
 import signal
 import time
@@ -76,6 +77,7 @@ def _worker(
 ) -> None:
     # Ctrl-C reaches the whole process group; only the main process decides how to stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
     try:
         configure_torch(threads=1)
         torch.manual_seed(seed)
@@ -101,6 +103,8 @@ def _worker(
         for p, state in zip(shared_params, shared_states, strict=True):
             optimizer.state[p] = state  # the shared moments and step counters
         while not stop.is_set():
+            if os.getppid() != parent:  # the trainer died (SIGKILL): stop instead of training on as an orphan
+                return
             local.load_state_dict(shared_model.state_dict())
             episode = sampler.sample(rng)
             noise = rng.random(config.env.max_steps)
