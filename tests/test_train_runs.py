@@ -357,3 +357,29 @@ def test_async_workers_do_not_outlive_a_killed_trainer(tmp_path: Path) -> None:
     while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not any(_alive(pid) for pid in workers), "workers kept training after their trainer died"
+
+
+def test_a_flipped_byte_in_a_checkpoint_is_an_error_never_a_silent_change(tmp_path: Path) -> None:
+    import numpy as np
+
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
+    path = run / ckpt.CHECKPOINT_FILE
+    original, good = _state(run), path.read_bytes()
+    rng = np.random.default_rng(0)
+    detected = 0
+    for offset in rng.integers(0, len(good), 40):
+        damaged = bytearray(good)
+        damaged[offset] ^= 0x5A
+        path.write_bytes(bytes(damaged))
+        try:
+            loaded = ckpt.load_file(path)
+        except ckpt.CheckpointError as error:
+            assert str(path) in str(error)
+            detected += 1
+            continue
+        assert ckpt.digest(loaded) == ckpt.digest(original)  # a flip in the zip's padding changes nothing
+    assert detected >= 30
+    path.write_bytes(b"")
+    with pytest.raises(ckpt.CheckpointError, match=r"cannot read checkpoint .+: \S"):
+        ckpt.load_file(path)

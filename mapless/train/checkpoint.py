@@ -16,6 +16,7 @@ tensors, numbers, strings, lists and dicts and are read with ``torch.load(weight
 
 from __future__ import annotations
 
+import hashlib
 import re
 from pathlib import Path
 from typing import Any
@@ -40,10 +41,37 @@ class CheckpointError(MaplessError):
     pass
 
 
-def atomic_save(payload: Any, path: str | Path) -> None:
-    """``torch.save``, atomically (:func:`mapless.files.replacing`)."""
+def digest(tree: Any) -> str:
+    """SHA-256 of a payload's content (every tensor's dtype, shape and bytes, every other value's
+    repr, keys in order), stored in the file and checked when it loads: a checkpoint holds hours of
+    work, and a flipped byte would otherwise load as a silently altered tensor."""
+    hasher = hashlib.sha256()
+
+    def visit(value: Any) -> None:
+        if isinstance(value, torch.Tensor):
+            t = value.detach().cpu().contiguous()
+            hasher.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+            hasher.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        elif isinstance(value, dict):
+            hasher.update(b"D%d" % len(value))
+            for key, item in value.items():
+                hasher.update(repr(key).encode())
+                visit(item)
+        elif isinstance(value, list | tuple):
+            hasher.update(b"L%d" % len(value))
+            for item in value:
+                visit(item)
+        else:
+            hasher.update(repr(value).encode())
+
+    visit(tree)
+    return hasher.hexdigest()
+
+
+def atomic_save(payload: dict, path: str | Path) -> None:
+    """``torch.save`` of ``payload`` with its :func:`digest`, atomically (:func:`mapless.files.replacing`)."""
     with replacing(path) as tmp:
-        torch.save(payload, tmp)
+        torch.save({**payload, "digest": digest(payload)}, tmp)
 
 
 def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
@@ -53,9 +81,13 @@ def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dic
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # a torn or foreign file: say which one
-        raise CheckpointError(f"cannot read checkpoint {path}: {error}") from error
+        reason = str(error) or type(error).__name__
+        raise CheckpointError(f"cannot read checkpoint {path}: {reason}") from error
     if not isinstance(payload, dict) or payload.get("format") != FORMAT_VERSION:
         raise CheckpointError(f"{path} is not a mapless checkpoint (format {FORMAT_VERSION})")
+    stored = payload.pop("digest", None)  # files written before digests existed have none
+    if stored is not None and stored != digest(payload):
+        raise CheckpointError(f"{path} is corrupt: its content does not match the digest it was written with")
     return payload
 
 
