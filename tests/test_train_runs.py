@@ -383,3 +383,21 @@ def test_a_flipped_byte_in_a_checkpoint_is_an_error_never_a_silent_change(tmp_pa
     path.write_bytes(b"")
     with pytest.raises(ckpt.CheckpointError, match=r"cannot read checkpoint .+: \S"):
         ckpt.load_file(path)
+
+
+def test_a_failed_checkpoint_write_says_what_happened_and_keeps_the_previous(tmp_path, monkeypatch) -> None:
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
+    before = (run / ckpt.CHECKPOINT_FILE).read_bytes()
+
+    def full_disk(obj, f, *args, **kwargs):
+        Path(f).write_bytes(b"partial")
+        raise RuntimeError("basic_ios::clear: iostream error")  # what torch.save says on a full disk
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(
+        ckpt.CheckpointError, match=r"the previous checkpoint\.pt is intact: make room, then resume"
+    ):
+        ckpt.atomic_save({"format": ckpt.FORMAT_VERSION}, run / ckpt.CHECKPOINT_FILE)
+    assert (run / ckpt.CHECKPOINT_FILE).read_bytes() == before
+    assert not list(run.glob("*.tmp"))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -70,8 +71,17 @@ def digest(tree: Any) -> str:
 
 def atomic_save(payload: dict, path: str | Path) -> None:
     """``torch.save`` of ``payload`` with its :func:`digest`, atomically (:func:`mapless.files.replacing`)."""
-    with replacing(path) as tmp:
-        torch.save({**payload, "digest": digest(payload)}, tmp)
+    path = Path(path)
+    try:
+        with replacing(path) as tmp:
+            torch.save({**payload, "digest": digest(payload)}, tmp)
+    except (OSError, RuntimeError) as error:  # a full disk surfaces as "basic_ios::clear: iostream error"
+        free = shutil.disk_usage(path.parent).free if path.parent.exists() else 0
+        full = " (no space left on the device)" if free < 64 << 20 else ""
+        raise CheckpointError(
+            f"could not write {path}{full}: {error}. {free / 2**20:.0f} MiB free there; the previous "
+            f"{path.name} is intact: make room, then resume with `mapless train --resume {path.parent}`"
+        ) from error
 
 
 def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
