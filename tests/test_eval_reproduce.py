@@ -261,10 +261,10 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
 @pytest.mark.parametrize(
     "experiment, seeds, runs",
     [
-        ("table1", 3, {"a3c": 3, "cvmeta": 3}),  # random is not trained
+        ("table1", 3, {"a3c": 3, "mjolnir_o": 3, "cvmeta": 3, "mlp": 3}),  # random is not trained
         ("table2", 2, {"cvmeta": 8, "mjolnir_o": 8}),  # 4 training room types x 2 seeds
         ("table3", 2, {"cvmeta": 10}),  # the full model and 4 ablations x 2 seeds
-        ("figure3", 1, {"a3c": 1, "cvmeta": 1}),  # Table 1's runs
+        ("figure3", 1, {"a3c": 1, "mjolnir_o": 1, "cvmeta": 1, "mlp": 1}),  # Table 1's runs
     ],
 )
 def test_planned_runs_of_the_shipped_small_configs(experiment, seeds, runs):
