@@ -109,6 +109,9 @@ class NavModel(nn.Module):
     #: inner step's parameters under ``adapt: policy``.
     policy_prefixes: ClassVar[tuple[str, ...]] = ("embed_action.", "pointwise.", "lstm.", "actor_linear.")
     description: ClassVar[str] = ""
+    #: Whether the model's reference training pays MJOLNIR's hierarchical (parent-object) reward
+    #: (``env.parent_reward`` None follows it).
+    trains_with_parent_reward: ClassVar[bool] = False
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__()

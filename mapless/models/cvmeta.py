@@ -50,6 +50,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     description = (
         "the paper's model: context vector + hierarchical GCN + GloVe, pointwise fusion, meta-learning"
     )
+    trains_with_parent_reward = True  # the paper trains with the hierarchical parent reward
     default_graph = "hierarchical"
     default_inner_lr = 1e-3  # the paper: "an inner learning rate of 0.001"
     # The paper's meta-objective (eq. 3) adapts θ of a_t ~ π(φ(s_t; v), ψ(g; u); θ), not the encoders.

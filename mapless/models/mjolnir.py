@@ -57,6 +57,7 @@ class ObjectGcnMixin:
 
 class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_O: context matrix + object GCN + previous policy -> LSTM(5C + 522)"
+    trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
@@ -75,6 +76,7 @@ class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
 
 class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_R: SAVN embedding || object GCN -> LSTM(3648)"
+    trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):

@@ -21,9 +21,6 @@ from mapless.scenes.categories import targets
 from mapless.sim.config import SimConfig
 from mapless.sim.task import TRAIN_MAX_STEPS
 
-#: Models whose reference training uses MJOLNIR's hierarchical (parent-object) reward.
-PARENT_REWARD_MODELS = ("mjolnir_o", "mjolnir_r", "cvmeta")
-
 
 def _require(ok: bool, key: str, message: str) -> None:
     if not ok:
@@ -301,7 +298,7 @@ class TrainConfig:
     def parent_reward(self) -> bool:
         if self.env.parent_reward is not None:
             return self.env.parent_reward
-        return self.model.name in PARENT_REWARD_MODELS
+        return MODELS[self.model.name].trains_with_parent_reward
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
