@@ -36,7 +36,7 @@ TESTS = REPO / "tests"
 SHARED_SPELLINGS = (
     "/".join(("..", "shared")),
     "/".join(("", "work", "shared")),
-    str(REPO.parent / "shared"),
+    str(REPO.parent.joinpath("shared")),
 )
 #: A quoted absolute, home or parent-relative path: whatever a test reads lives in the repository.
 OUTSIDE_PATH_LITERAL = re.compile(r"""["'`](?:/|~/|\.\./)\w""")
@@ -184,7 +184,8 @@ def outside_references(data: bytes, depth: int) -> list[str]:
 def test_the_outside_reference_check_finds_what_it_should():
     file = "__file__" + ")"  # spelled apart, so that this file passes its own check
     shared = SHARED_SPELLINGS[0]
-    assert outside_references(f"ROOT = Path({file}.resolve().parents[1].parent / 'shared'".encode(), 2)
+    name = "'shared'"
+    assert outside_references(f"ROOT = Path({file}.resolve().parents[1].parent / {name}".encode(), 2)
     assert outside_references(f"ROOT = Path({file}.parent.parent.parent".encode(), 2)
     assert outside_references(f"SAMPLE = '{shared}/data/x.pkl'".encode(), 2)
     assert outside_references(b'Path("' + b"/" + b'tmp/x").touch()', 2)
