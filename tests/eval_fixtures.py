@@ -7,7 +7,7 @@ import functools
 import numpy as np
 from scene_fixtures import grid_scene
 
-from mapless.episodes.episode import Episode
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
 #: A kitchen and a living room (200-step limit) on 7x7 grids with a blocked diagonal.

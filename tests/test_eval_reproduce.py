@@ -15,10 +15,10 @@ import pytest
 
 from mapless.cli import main
 from mapless.episodes import evalsets
-from mapless.episodes.episode import Episode
 from mapless.experiments import RunTally, load_experiment, planned_runs, run_dir_for, train_config
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mapless.episodes import Episode
-from mapless.offline import OfflineFormatError, import_episode_file, read_episode_file
+from mapless.offline import OfflineFormatError, import_episode_file, offline_library, read_episode_file
 from mapless.offline.episodes import RawEpisode, map_episodes, write_episode_file
 from mapless.sim.scene_data import pose_key
 
@@ -276,7 +276,6 @@ def test_import_onto_an_offline_root_keeps_its_object_ids(sample, floorplan425, 
     from mapless.cli import interop
     from mapless.episodes import evalsets
     from mapless.offline.writer import export_scene
-    from mapless.sim.library import SceneLibrary
 
     export_scene(floorplan425, tmp_path / "root", "savn")
     entries = [e for e in pickle.loads(sample.read_bytes()) if e["scene"] == "FloorPlan425"][:10]
@@ -290,7 +289,7 @@ def test_import_onto_an_offline_root_keeps_its_object_ids(sample, floorplan425, 
     )
     assert args.func(args) == 0
     episodes, _ = evalsets.load(out)
-    offline = SceneLibrary.offline(tmp_path / "root")["FloorPlan425"]
+    offline = offline_library(tmp_path / "root")["FloorPlan425"]
     assert episodes and all(set(e.target_ids) <= set(offline.instance_ids) for e in episodes)
     for e in episodes:  # the stored shortest paths are the offline root's
         goal = offline.goal_mask_for_instances(offline.goal_instances(e.target, e.target_ids))

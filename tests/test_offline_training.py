@@ -11,7 +11,7 @@ from train_fixtures import tiny_config
 
 from mapless.cli import main as cli_main
 from mapless.episodes import Episode, evalsets
-from mapless.offline import export_scene
+from mapless.offline import export_scene, offline_library
 from mapless.sim.library import SceneLibrary
 from mapless.train.run import train
 
@@ -22,7 +22,7 @@ def test_train_and_evaluate_on_an_offline_root(tmp_path: Path, capsys) -> None:
     built = SceneLibrary.builtin()[SCENE]
     root = tmp_path / "offline"
     export_scene(built, root, "mjolnir")
-    offline = SceneLibrary.offline(root)[SCENE]
+    offline = offline_library(root)[SCENE]
     # Our own export carries a side file that restores the semantic maps exactly (real SAVN/MJOLNIR
     # roots give 512-channel ResNet maps and need model.feature_channels=512).
     assert offline.n_poses == built.n_poses and offline.features.shape == built.features.shape

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from mapless.cli.common import add_sim_arguments, sim_config_from
 from mapless.errors import MaplessError
+from mapless.offline import offline_library
 from mapless.offline.format import FORMATS
 
 
@@ -188,7 +189,7 @@ def _import_episodes(args: argparse.Namespace) -> int:
 
     config = sim_config_from(args)
     if args.offline_dir:
-        library = SceneLibrary.offline(args.offline_dir, config.category_set)
+        library = offline_library(args.offline_dir, config.category_set)
     else:
         library = SceneLibrary.builtin(config, args.cache_dir)
     report = import_episode_file(

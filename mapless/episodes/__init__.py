@@ -1,5 +1,5 @@
 """Episodes: the training sampler (as the references sample) and fixed evaluation sets."""
 
-from mapless.episodes.episode import Episode
+from mapless.sim.episode import Episode
 
 __all__ = ["Episode"]

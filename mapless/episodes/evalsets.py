@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
 from mapless.files import write_bytes
 from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, scene_names
 from mapless.scenes.categories import targets
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
 FORMAT = "mapless-episodes/1"

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapless.episodes.episode import Episode
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.scenes.categories import targets
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
 

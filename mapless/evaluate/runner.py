@@ -29,11 +29,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mapless.episodes.episode import Episode
 from mapless.evaluate.metrics import EpisodeResult
+from mapless.offline import offline_library
 from mapless.scenes.catalogue import room_type_of
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
 from mapless.sim.task import TargetFields, max_steps_for
@@ -279,7 +280,7 @@ class LibrarySpec:
         if self.factory is not None:
             return _import(self.factory)()
         if self.offline_dir is not None:
-            return SceneLibrary.offline(self.offline_dir, self.sim.category_set)
+            return offline_library(self.offline_dir, self.sim.category_set)
         return SceneLibrary.builtin(self.sim, Path(self.cache_dir) if self.cache_dir else None)
 
 

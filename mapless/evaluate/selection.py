@@ -17,12 +17,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from mapless.episodes import evalsets
-from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, aggregate
 from mapless.evaluate.report import read_json, write_json
 from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
+from mapless.sim.episode import Episode
 
 PROTOCOLS: dict[str, tuple[str, str, str]] = {
     "standard": ("val", "test", "selected on val (x21-x25), reported once on test (x26-x30)"),

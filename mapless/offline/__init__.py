@@ -9,7 +9,7 @@ from mapless.offline.episodes import (
     write_episode_file,
 )
 from mapless.offline.format import FORMATS, OfflineFormatError, scene_folder_name
-from mapless.offline.reader import find_scene_folder, load_offline_scene, offline_loader
+from mapless.offline.reader import find_scene_folder, load_offline_scene, offline_library, offline_loader
 from mapless.offline.writer import export_scene
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "import_episode_file",
     "load_offline_scene",
     "map_episodes",
+    "offline_library",
     "offline_loader",
     "read_episode_file",
     "scene_folder_name",

@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 
-from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
 from mapless.files import write_bytes
 from mapless.offline.format import (
@@ -40,6 +39,7 @@ from mapless.offline.format import (
     parse_pose_key,
     scene_folder_name,
 )
+from mapless.sim.episode import Episode
 from mapless.sim.scene_data import SceneData, pose_key
 
 #: v1/SAVN type names -> AI2-THOR 5 types whose instances stand for them when mapping targets.

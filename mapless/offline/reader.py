@@ -43,6 +43,7 @@ from mapless.offline.format import (
     object_type_of_id,
     parse_pose_key,
 )
+from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import N_MOVEMENT_ACTIONS, SceneData, pose_key
 
 FEATURE_MODES = ("auto", "resnet", "none")
@@ -432,3 +433,8 @@ def offline_loader(root: str | Path, **kwargs: Any) -> Callable[[str], SceneData
         return load_offline_scene(find_scene_folder(root, scene), **kwargs)
 
     return load
+
+
+def offline_library(root: str | Path, category_set: str = "mjolnir101") -> SceneLibrary:
+    """A :class:`~mapless.sim.library.SceneLibrary` of a SAVN/MJOLNIR offline data root (docs/interop.md)."""
+    return SceneLibrary(offline_loader(root, category_set=category_set))

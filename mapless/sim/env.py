@@ -21,9 +21,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mapless.episodes.episode import Episode
 from mapless.errors import MaplessError
 from mapless.knowledge.parents import parent_reward
+from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import ACTIONS, DONE
 from mapless.sim.task import (

@@ -37,13 +37,6 @@ class SceneLibrary:
             ),
         )
 
-    @classmethod
-    def offline(cls, root: str | Path, category_set: str = "mjolnir101") -> SceneLibrary:
-        """Scenes of a SAVN/MJOLNIR offline data root (docs/interop.md)."""
-        from mapless.offline import offline_loader
-
-        return cls(offline_loader(root, category_set=category_set))
-
     def prepare(self, scenes: Sequence[str], progress: bool = True) -> None:
         """Get ``scenes`` ready before work starts. The built-in library builds the missing caches
         in parallel, with a progress bar; left to first use, a fresh machine would build them one

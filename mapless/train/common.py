@@ -17,6 +17,7 @@ from mapless.agent.precision import keep_compiled_kernels
 from mapless.episodes.sampler import TrainingSampler
 from mapless.errors import TrainingDiverged
 from mapless.models import NavModel, build_model
+from mapless.offline import offline_library
 from mapless.sim.library import SceneLibrary
 from mapless.sim.task import RewardConfig, TargetFields
 from mapless.sim.vector import BatchedNavEnv
@@ -35,7 +36,7 @@ class BuiltinLibrary:
     def __call__(self) -> SceneLibrary:
         env = self.config.env
         if env.offline_dir:
-            return SceneLibrary.offline(env.offline_dir, env.sim.category_set)
+            return offline_library(env.offline_dir, env.sim.category_set)
         return SceneLibrary.builtin(env.sim, Path(env.cache_dir) if env.cache_dir else None)
 
 

@@ -26,10 +26,10 @@ from mapless.agent.buffers import BufferPool
 from mapless.agent.meta import InnerLoop, InnerLoopState
 from mapless.agent.precision import PRECISIONS, encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
-from mapless.episodes.episode import Episode
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 from mapless.models.memo import InViewMemo
 from mapless.sim.env import NavEnv
+from mapless.sim.episode import Episode
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
 from mapless.train.config import LossConfig

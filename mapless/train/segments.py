@@ -27,11 +27,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mapless.agent.acting import sample_actions, to_tensors
-from mapless.episodes.episode import Episode
 from mapless.episodes.sampler import TrainingSampler
 from mapless.evaluate.metrics import spl
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
 from mapless.models.memo import InViewMemo
+from mapless.sim.episode import Episode
 from mapless.sim.vector import BatchedNavEnv
 
 
