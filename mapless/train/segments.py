@@ -177,7 +177,8 @@ class SegmentCollector:
         """The acting loop of :meth:`collect`; returns V after the last step."""
         model, env, device = self.model, self.env, self.device
         n = env.batch_size
-        cut_is_end = self.whole_episodes
+        # Whole episodes follow the references (R = 0 at the step limit): a truncation is an end there.
+        cut_is_end = np.bool_(self.whole_episodes)
         for _ in range(steps):
             starts = self.needs_episode.copy()
             if starts.any():
@@ -220,7 +221,6 @@ class SegmentCollector:
                 ("log_prob", F.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)),
                 ("values", out.value.detach().reshape(n)),
                 ("rewards", torch.as_tensor(step.reward, device=device)),
-                # whole episodes: the references' R = 0 at the step limit, so a truncation is an end
                 (
                     "terminated",
                     torch.as_tensor(step.terminated | (step.truncated & cut_is_end), device=device),
