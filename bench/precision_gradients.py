@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from mapless.agent.acting import observation_keys
-from mapless.train.checkpoint import load_model
+from mapless.checkpoint import load_model
 from mapless.train.common import BuiltinLibrary, training_env, training_sampler
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 

@@ -11,10 +11,10 @@ import pytest
 import torch
 from train_fixtures import fixture_library, tiny_config
 
+from mapless import checkpoint as ckpt
 from mapless.agent.sequence import replay_segment
 from mapless.config import ConfigError
 from mapless.models import build_model
-from mapless.train import checkpoint as ckpt
 from mapless.train.ppo import PPOTrainer
 from mapless.train.ppo_loss import gae, ppo_loss
 from mapless.train.run import resume_config, train

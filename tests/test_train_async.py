@@ -12,7 +12,7 @@ import pytest
 import torch
 from train_fixtures import fixture_library, tiny_config
 
-from mapless.train import checkpoint as ckpt
+from mapless import checkpoint as ckpt
 from mapless.train.common import new_model, seed_for
 from mapless.train.hogwild import AsyncTrainer, WorkerError
 

@@ -11,7 +11,7 @@ import torch
 import torch.multiprocessing as mp
 from train_fixtures import fixture_library, tiny_config
 
-from mapless.train import checkpoint as ckpt
+from mapless import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 

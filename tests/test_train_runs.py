@@ -15,10 +15,10 @@ import torch
 import yaml
 from train_fixtures import fixture_library, tiny_config
 
+from mapless import checkpoint as ckpt
 from mapless.agent.precision import KERNEL_CACHE_CAPACITY
 from mapless.cli import main as cli_main
 from mapless.config import ConfigError, load_config
-from mapless.train import checkpoint as ckpt
 from mapless.train.common import clip_gradients, configure_torch, new_model
 from mapless.train.config import TrainConfig
 from mapless.train.run import resume_config, train

@@ -84,7 +84,7 @@ def _eval(args: argparse.Namespace) -> int:
     target_set = "mjolnir22"
     meta: dict = {"split": args.split}
     if path.exists():
-        from mapless.train.checkpoint import config_of, load_file, resolve_model_file
+        from mapless.checkpoint import config_of, load_file, resolve_model_file
 
         model_file = resolve_model_file(path)
         cfg = config_of(load_file(model_file))

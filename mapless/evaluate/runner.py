@@ -244,7 +244,7 @@ def load_model(spec: AgentSpec):
     from mapless.models import ModelConfig, build_model
 
     if spec.checkpoint is not None:
-        from mapless.train.checkpoint import load_model as load_trained
+        from mapless.checkpoint import load_model as load_trained
 
         return load_trained(spec.checkpoint)[0]
     torch.manual_seed(spec.init_seed)

@@ -76,7 +76,7 @@ def episodes_digest(episodes: Sequence[Episode]) -> str:
 def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
     """``(training episodes, model file)`` of every snapshot of a run, plus its final model when it
     is not already a snapshot of the same episode count."""
-    from mapless.train.checkpoint import FINAL_MODEL_FILE, load_file, snapshots
+    from mapless.checkpoint import FINAL_MODEL_FILE, load_file, snapshots
 
     run_dir = Path(run_dir)
     found = snapshots(run_dir)

@@ -74,7 +74,7 @@ class Evaluator:
                 "selection": sel.summary(),
                 "steps_per_second": sel.report.steps_per_second,
             }
-        from mapless.train.checkpoint import resolve_model_file
+        from mapless.checkpoint import resolve_model_file
 
         spec = AgentSpec(checkpoint=str(resolve_model_file(run_dir)))
         run = evaluate(spec, self.report_episodes, settings, self.library(train_cfg))

@@ -86,7 +86,7 @@ def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> float:
     """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
     (a resumable checkpoint but no final model) is resumed. Returns the share of the run's episodes
     trained here: 0 for a reused run, 1 for one trained from the start."""
-    from mapless.train import checkpoint as ckpt
+    from mapless import checkpoint as ckpt
     from mapless.train.run import train
 
     if (run_dir / ckpt.FINAL_MODEL_FILE).is_file():

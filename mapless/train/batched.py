@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
-from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.common import (
     BuiltinLibrary,

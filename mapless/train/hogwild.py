@@ -33,10 +33,10 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
+from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
-from mapless.train import checkpoint as ckpt
 from mapless.train.common import (
     BuiltinLibrary,
     GracefulStop,

@@ -8,9 +8,9 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from mapless import checkpoint as ckpt
 from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.errors import MaplessError
-from mapless.train import checkpoint as ckpt
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.common import LibraryFactory, prepare_scenes

@@ -1,4 +1,5 @@
-"""Run folders, atomic checkpoints and loading trained models.
+"""The run folder format, shared by the trainers (writing) and evaluation (loading): run folders,
+atomic checkpoints and loading trained models.
 
 A run folder holds::
 
