@@ -64,7 +64,7 @@ def evaluate_policy(model, library, episodes) -> dict[str, float]:
     from mapless.evaluate.metrics import aggregate
     from mapless.evaluate.runner import AdaptiveModelAgent, EvalSettings, ModelAgent, run_episodes
 
-    model = copy.deepcopy(model).eval()
+    model = copy.deepcopy(model).cpu().eval()  # a GPU-trained policy is evaluated on the CPU
     batch = 32
     agent = AdaptiveModelAgent(model, batch) if model.adaptive else ModelAgent(model, batch)
     settings = EvalSettings(batch_size=batch, workers=1, category_set=model.config.category_set)
