@@ -58,8 +58,44 @@ def _read_json(path: Path) -> Any:
             return json.load(f)
     except json.JSONDecodeError as error:
         raise OfflineFormatError(path, f"malformed JSON ({error})") from None
+    except RecursionError:
+        raise OfflineFormatError(path, "malformed JSON (nested too deeply)") from None
     except (OSError, UnicodeDecodeError) as error:
         raise OfflineFormatError(path, f"cannot be read ({error})") from None
+
+
+_SIDE_DTYPES = ("uint8", "int8", "uint16", "int16", "float16", "float32", "float64")
+#: Fields of mapless' side file and the check each value must pass.
+_SIDE_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "feature_kind": (lambda v: isinstance(v, str), "a string"),
+    "feature_channels": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a count >= 0"),
+    "feature_scale": (
+        lambda v: isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) and v > 0,
+        "a positive number",
+    ),
+    "features_dtype": (lambda v: v in _SIDE_DTYPES, f"one of {', '.join(_SIDE_DTYPES)}"),
+    "alias_types": (lambda v: isinstance(v, list) and all(isinstance(t, str) for t in v), "a list of types"),
+    "scene": (lambda v: isinstance(v, str), "a string"),
+    "room_type": (lambda v: isinstance(v, str), "a string"),
+}
+
+
+def _side_file(path: Path) -> dict:
+    """mapless' side file (:data:`SIDE_FILE`), each known field checked: its values size and type
+    the feature array, so a bad one must be an error naming the file, not a numpy traceback."""
+    if not path.is_file():
+        return {}
+    side = _read_json(path)
+    if not isinstance(side, dict):
+        raise OfflineFormatError(path, "expected a JSON object")
+    for key, (valid, expected) in _SIDE_FIELDS.items():
+        if key in side and not valid(side[key]):
+            raise OfflineFormatError(path, f"{key} {side[key]!r} is not {expected}")
+    if side.get("feature_kind") == "semantic":
+        missing = [k for k in ("feature_channels", "feature_scale", "features_dtype") if k not in side]
+        if missing:
+            raise OfflineFormatError(path, f"semantic features need {', '.join(missing)}")
+    return side
 
 
 def _graph(path: Path) -> tuple[list[str], list[set[int]]]:
@@ -166,10 +202,14 @@ def _boxes(path: Path, index: dict[str, int]) -> tuple[dict[int, dict[str, np.nd
             continue
         row: dict[str, np.ndarray] = {}
         for object_type, flat in by_type.items():
-            values = np.asarray(flat, dtype=np.float64) if isinstance(flat, list) else None
-            if values is None or values.ndim != 1 or len(values) % 4:
+            numbers = isinstance(flat, list) and all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in flat
+            )
+            values = np.asarray(flat, dtype=np.float64) if numbers else None
+            if values is None or not np.isfinite(values).all() or len(values) % 4:
                 raise OfflineFormatError(
-                    path, f"pose {key!r}, {object_type!r}: boxes must be a flat list of 4-tuples"
+                    path,
+                    f"pose {key!r}, {object_type!r}: boxes must be a flat list of finite numbers, 4 per box",
                 )
             row[object_type] = values.reshape(-1, 4)
         out[index[key]] = row
@@ -214,6 +254,11 @@ def _features(
             # mapless' own export: read only the real channels and re-quantise to the stored dtype.
             channels, scale = int(side["feature_channels"]), float(side["feature_scale"])
             stored = np.dtype(side["features_dtype"])
+            if channels > shape[-3]:
+                raise OfflineFormatError(
+                    path.with_name(SIDE_FILE),
+                    f"feature_channels {channels} exceeds the {shape[-3]} channels of {path.name}",
+                )
         else:
             channels, scale, stored = shape[-3], 1.0, dtype
         out = np.empty((len(keys), channels, FEATURE_SIDE, FEATURE_SIDE), dtype=stored)
@@ -263,10 +308,7 @@ def load_offline_scene(
         raise OfflineFormatError(folder, "not a directory")
     if features not in FEATURE_MODES:
         raise UnknownNameError("feature mode", features, FEATURE_MODES)
-    side_path = folder / SIDE_FILE
-    side = _read_json(side_path) if side_path.is_file() else {}
-    if not isinstance(side, dict):
-        raise OfflineFormatError(side_path, "expected a JSON object")
+    side = _side_file(folder / SIDE_FILE)
 
     keys, graph_successors = _graph(folder / GRAPH_FILE)
     if not keys:
@@ -417,6 +459,8 @@ def find_scene_folder(root: str | Path, scene: str) -> Path:
     """The folder of ``scene`` under an offline data root, whichever naming it uses
     (``FloorPlan1``, SAVN's ``FloorPlan1_physics``, or the name verbatim)."""
     root = Path(root)
+    if not root.is_dir():
+        raise OfflineFormatError(root, "no such offline data root (a folder of scene folders)")
     base = scene.removesuffix("_physics")
     for name in dict.fromkeys((scene, base, f"{base}_physics")):
         if (root / name / GRAPH_FILE).is_file():
