@@ -124,9 +124,12 @@ def save_run_state(
     world_size: int,
     final: bool,
     snapshot: bool = True,
+    monitor: dict | None = None,
 ) -> None:
     """Everything a trainer writes at a checkpoint: the resumable state (:data:`CHECKPOINT_FILE`), a
     model snapshot (unless ``snapshot`` is False) and, at the end of the budget, the final model.
+    ``monitor`` is the logging state (:meth:`mapless.train.monitor.RunMonitor.state`) a resumed run
+    continues from.
 
     Snapshots are what checkpoint selection chooses from, so they follow the ``checkpoint_every``
     schedule alone: a run stopped by Ctrl-C between two of them writes only the resumable state, and
@@ -145,6 +148,8 @@ def save_run_state(
         "counters": {**counters, "world_size": world_size},
         "config": to_dict(config),
     }
+    if monitor is not None:
+        state["monitor"] = monitor
     atomic_save(state, Path(run_dir) / CHECKPOINT_FILE)
     model_file = model_payload(weights, config, counters)
     if snapshot or final:
