@@ -153,6 +153,8 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: list[st
             raise ConfigError(f"config {path} is not UTF-8 text: {error}") from error
         except yaml.YAMLError as error:
             raise ConfigError(f"config {path} is not valid YAML: {error}") from error
+        except RecursionError:  # PyYAML parses nesting recursively
+            raise ConfigError(f"config {path} is nested too deeply to be a config") from None
         if not isinstance(data, dict):
             raise ConfigError(f"config {path} must be a mapping at the top level")
     return from_dict(cls, apply_overrides(data, overrides or []))

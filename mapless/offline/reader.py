@@ -230,55 +230,69 @@ def _features(
         f = h5py.File(path, "r")
     except OSError as error:
         raise OfflineFormatError(path, f"not a readable HDF5 file ({error})") from None
-    with f:
-        missing = [k for k in keys if k not in f]
-        if missing:
+    try:
+        with f:
+            return _read_features(f, path, keys, mode, side, dtype)
+    except MaplessError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, MemoryError) as error:
+        # h5py's errors on a damaged file (a broken B-tree, a link past the end, absurd sizes, ...)
+        raise OfflineFormatError(path, f"damaged HDF5 file ({type(error).__name__}: {error})") from None
+
+
+def _read_features(
+    f: Any, path: Path, keys: list[str], mode: str, side: dict, dtype: np.dtype
+) -> tuple[np.ndarray, float, str]:
+    import h5py
+
+    missing = [k for k in keys if k not in f]
+    if missing:
+        raise OfflineFormatError(
+            path,
+            f"{len(missing)} of the {len(keys)} poses of {GRAPH_FILE} have no feature map "
+            f"(first: {', '.join(repr(k) for k in missing[:3])})",
+        )
+    first = f[keys[0]]
+    shape = getattr(first, "shape", None)
+    if shape is None or not (
+        len(shape) in (3, 4)
+        and shape[-2:] == (FEATURE_SIDE, FEATURE_SIDE)
+        and (len(shape) == 3 or shape[0] == 1)
+    ):
+        raise OfflineFormatError(
+            path,
+            f"dataset {keys[0]!r} has shape {shape}; expected (1, C, 7, 7) (SAVN) or (C, 7, 7) (MJOLNIR)",
+        )
+    semantic = mode == "auto" and side.get("feature_kind") == "semantic"
+    if semantic:
+        # mapless' own export: read only the real channels and re-quantise to the stored dtype.
+        channels, scale = int(side["feature_channels"]), float(side["feature_scale"])
+        stored = np.dtype(side["features_dtype"])
+        if channels > shape[-3]:
             raise OfflineFormatError(
-                path,
-                f"{len(missing)} of the {len(keys)} poses of {GRAPH_FILE} have no feature map "
-                f"(first: {', '.join(repr(k) for k in missing[:3])})",
+                path.with_name(SIDE_FILE),
+                f"feature_channels {channels} exceeds the {shape[-3]} channels of {path.name}",
             )
-        first = f[keys[0]]
-        shape = getattr(first, "shape", None)
-        if shape is None or not (
-            len(shape) in (3, 4)
-            and shape[-2:] == (FEATURE_SIDE, FEATURE_SIDE)
-            and (len(shape) == 3 or shape[0] == 1)
-        ):
-            raise OfflineFormatError(
-                path,
-                f"dataset {keys[0]!r} has shape {shape}; expected (1, C, 7, 7) (SAVN) or (C, 7, 7) (MJOLNIR)",
-            )
-        semantic = mode == "auto" and side.get("feature_kind") == "semantic"
-        if semantic:
-            # mapless' own export: read only the real channels and re-quantise to the stored dtype.
-            channels, scale = int(side["feature_channels"]), float(side["feature_scale"])
-            stored = np.dtype(side["features_dtype"])
-            if channels > shape[-3]:
-                raise OfflineFormatError(
-                    path.with_name(SIDE_FILE),
-                    f"feature_channels {channels} exceeds the {shape[-3]} channels of {path.name}",
-                )
-        else:
-            channels, scale, stored = shape[-3], 1.0, dtype
-        out = np.empty((len(keys), channels, FEATURE_SIDE, FEATURE_SIDE), dtype=stored)
-        selection = (0, slice(0, channels)) if len(shape) == 4 else (slice(0, channels),)
-        for p, key in enumerate(keys):
-            dataset = f[key]
-            if not isinstance(dataset, h5py.Dataset):
-                raise OfflineFormatError(path, f"{key!r} is a group, not a dataset")
-            if dataset.shape != shape:
-                raise OfflineFormatError(path, f"dataset {key!r} has shape {dataset.shape}, others {shape}")
-            try:
-                values = np.asarray(dataset[selection], dtype=np.float32)
-            except (OSError, ValueError, TypeError) as error:
-                raise OfflineFormatError(path, f"dataset {key!r} cannot be read ({error})") from None
-            if semantic and np.issubdtype(stored, np.integer):
-                info = np.iinfo(stored)
-                values = np.clip(np.rint(values / scale), info.min, info.max)
-            elif semantic:
-                values = values / scale
-            out[p] = values
+    else:
+        channels, scale, stored = shape[-3], 1.0, dtype
+    out = np.empty((len(keys), channels, FEATURE_SIDE, FEATURE_SIDE), dtype=stored)
+    selection = (0, slice(0, channels)) if len(shape) == 4 else (slice(0, channels),)
+    for p, key in enumerate(keys):
+        dataset = f[key]
+        if not isinstance(dataset, h5py.Dataset):
+            raise OfflineFormatError(path, f"{key!r} is a group, not a dataset")
+        if dataset.shape != shape:
+            raise OfflineFormatError(path, f"dataset {key!r} has shape {dataset.shape}, others {shape}")
+        try:
+            values = np.asarray(dataset[selection], dtype=np.float32)
+        except (OSError, ValueError, TypeError) as error:
+            raise OfflineFormatError(path, f"dataset {key!r} cannot be read ({error})") from None
+        if semantic and np.issubdtype(stored, np.integer):
+            info = np.iinfo(stored)
+            values = np.clip(np.rint(values / scale), info.min, info.max)
+        elif semantic:
+            values = values / scale
+        out[p] = values
     return out, scale, "semantic" if semantic else "resnet18"
 
 

@@ -128,6 +128,12 @@ def load(path: Path, config: SimConfig) -> SceneData:
         raise StaleCacheError(f"{path}: holds scene {header.get('scene')!r}, not {path.stem!r}")
     if header.get("checksum") != _checksum(arrays):
         raise StaleCacheError(f"{path}: checksum mismatch")
+    try:
+        problem = _inconsistency(header, arrays)
+    except (TypeError, ValueError, IndexError):  # 0-d or non-numeric arrays
+        problem = "arrays of unexpected shapes or types"
+    if problem:  # a crafted file: the checksum covers the arrays, not what they must agree on
+        raise StaleCacheError(f"{path}: {problem}")
     return SceneData(
         scene=header["scene"],
         room_type=header["room_type"],
@@ -137,6 +143,42 @@ def load(path: Path, config: SimConfig) -> SceneData:
         meta=header["meta"],
         **arrays,
     )
+
+
+def _inconsistency(header: dict, arrays: dict[str, np.ndarray]) -> str | None:
+    """What is wrong with a cache file whose checksum holds, or None: header fields of the wrong
+    type, or arrays whose sizes and indices disagree (they would fail mid-episode, not here)."""
+    kinds = {
+        "room_type": str,
+        "instance_ids": list,
+        "instance_types": list,
+        "feature_scale": float,
+        "meta": dict,
+    }
+    wrong = [k for k, kind in kinds.items() if not isinstance(header.get(k), kind)]
+    if wrong:
+        return f"header field {wrong[0]!r} is missing or not a {kinds[wrong[0]].__name__}"
+    ids, types = header["instance_ids"], header["instance_types"]
+    if len(ids) != len(types) or not all(isinstance(t, str) for t in ids + types):
+        return "instance ids and types are not two lists of names of one length"
+    if not all(arrays[k].dtype.kind in "biuf" for k in _ARRAY_FIELDS):
+        return "arrays that are not numbers"
+    poses = len(arrays["x"])
+    ptr, entries = arrays["view_ptr"], len(arrays["view_instance"])
+    checks = (
+        all(arrays[k].shape == (poses,) for k in ("x", "z", "yaw", "horizon")),
+        arrays["successors"].ndim == 2 and arrays["successors"].shape[0] == poses,
+        all(np.issubdtype(arrays[k].dtype, np.integer) for k in ("successors", "view_ptr", "view_instance")),
+        arrays["successors"].size == 0
+        or 0 <= arrays["successors"].min() <= arrays["successors"].max() < poses,
+        ptr.shape == (poses + 1,) and ptr[0] == 0 and ptr[-1] == entries and bool(np.all(np.diff(ptr) >= 0)),
+        entries == 0 or 0 <= arrays["view_instance"].min() <= arrays["view_instance"].max() < len(ids),
+        arrays["view_box"].shape == (entries, 4),
+        arrays["view_distance"].shape == arrays["view_visible"].shape == (entries,),
+        arrays["context"].ndim == 3 and arrays["context"].shape[0] == poses,
+        arrays["features"].ndim == 4 and arrays["features"].shape[0] == poses,
+    )
+    return None if all(checks) else "arrays of inconsistent sizes or indices"
 
 
 def load_or_build(
