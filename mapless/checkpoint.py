@@ -99,7 +99,29 @@ def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dic
     stored = payload.pop("digest", None)  # files written before digests existed have none
     if stored is not None and stored != digest(payload):
         raise CheckpointError(f"{path} is corrupt: its content does not match the digest it was written with")
+    problem = _malformed(payload)
+    if problem:  # a digest proves no origin (anyone can compute one), so the structure is checked too
+        raise CheckpointError(f"{path} is not a valid mapless checkpoint: {problem}")
     return payload
+
+
+def _malformed(payload: dict) -> str | None:
+    """What is wrong with the structure of a checkpoint's payload, or None."""
+    if payload.get("kind") not in ("model", "checkpoint"):
+        return f"kind {payload.get('kind')!r} is neither 'model' nor 'checkpoint'"
+    if not isinstance(payload.get("config"), dict):
+        return "it has no config mapping"
+    weights = payload.get("model")
+    if not (isinstance(weights, dict) and all(isinstance(v, torch.Tensor) for v in weights.values())):
+        return "its model is not a mapping of tensors"
+    counters = payload.get("counters", {})
+    if not (isinstance(counters, dict) and all(isinstance(v, int) for v in counters.values())):
+        return "its counters are not a mapping of integers"
+    if payload["kind"] == "checkpoint" and not (
+        isinstance(payload.get("optimizer"), dict) and isinstance(payload.get("rng"), list)
+    ):
+        return "a resumable checkpoint without an optimizer state or random streams"
+    return None
 
 
 def model_payload(weights: dict[str, torch.Tensor], config: TrainConfig, counters: dict[str, int]) -> dict:
@@ -124,9 +146,12 @@ def save_run_state(
     world_size: int,
     final: bool,
     snapshot: bool = True,
+    monitor: dict | None = None,
 ) -> None:
     """Everything a trainer writes at a checkpoint: the resumable state (:data:`CHECKPOINT_FILE`), a
     model snapshot (unless ``snapshot`` is False) and, at the end of the budget, the final model.
+    ``monitor`` is the logging state (:meth:`mapless.train.monitor.RunMonitor.state`) a resumed run
+    continues from.
 
     Snapshots are what checkpoint selection chooses from, so they follow the ``checkpoint_every``
     schedule alone: a run stopped by Ctrl-C between two of them writes only the resumable state, and
@@ -145,6 +170,8 @@ def save_run_state(
         "counters": {**counters, "world_size": world_size},
         "config": to_dict(config),
     }
+    if monitor is not None:
+        state["monitor"] = monitor
     atomic_save(state, Path(run_dir) / CHECKPOINT_FILE)
     model_file = model_payload(weights, config, counters)
     if snapshot or final:
@@ -206,8 +233,13 @@ def load_model(
     Returns ``(model in eval mode on device, the run's TrainConfig, counters)``; ``config.model`` is the
     :class:`~mapless.models.ModelConfig` (inner learning rate and steps for adaptive models included).
     """
-    payload = load_file(resolve_model_file(path), map_location=device)
+    file = resolve_model_file(path)
+    payload = load_file(file, map_location=device)
     config = config_of(payload)
     model = build_model(config.model)
-    model.load_state_dict(payload["model"])
+    try:
+        model.load_state_dict(payload["model"])
+    except RuntimeError as error:  # missing or unexpected keys, other shapes
+        reason = str(error).splitlines()[0]
+        raise CheckpointError(f"{file}: its weights do not fit the model of its config ({reason})") from None
     return model.to(device).eval(), config, dict(payload.get("counters", {}))

@@ -96,8 +96,10 @@ def from_dict(cls: type[T], data: dict, prefix: str = "") -> T:
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = set(data) - set(fields)
     if unknown:
-        key = sorted(unknown)[0]
-        raise ConfigError(f"unknown config key {prefix}{key!r}; valid keys here: {', '.join(sorted(fields))}")
+        key = sorted(unknown, key=str)[0]  # YAML keys may be numbers or None as well as strings
+        raise ConfigError(
+            f"unknown config key {f'{prefix}{key}'!r}; valid keys here: {', '.join(sorted(fields))}"
+        )
     kwargs = {name: _coerce(value, hints[name], f"{prefix}{name}") for name, value in data.items()}
     try:
         return cls(**kwargs)
@@ -147,8 +149,12 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: list[st
             data = yaml.safe_load(path.read_text()) or {}
         except OSError as error:
             raise ConfigError(f"cannot read config {path}: {error}") from error
+        except UnicodeDecodeError as error:
+            raise ConfigError(f"config {path} is not UTF-8 text: {error}") from error
         except yaml.YAMLError as error:
             raise ConfigError(f"config {path} is not valid YAML: {error}") from error
+        except RecursionError:  # PyYAML parses nesting recursively
+            raise ConfigError(f"config {path} is nested too deeply to be a config") from None
         if not isinstance(data, dict):
             raise ConfigError(f"config {path} must be a mapping at the top level")
     return from_dict(cls, apply_overrides(data, overrides or []))

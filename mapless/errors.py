@@ -15,7 +15,7 @@ class UnknownNameError(MaplessError, KeyError):
         valid = list(valid)
         close = difflib.get_close_matches(str(name), valid, n=3)
         hint = f" Did you mean {', '.join(close)}?" if close else ""
-        shown = summary or ", ".join(valid[:60]) + (" ..." if len(valid) > 60 else "")
+        shown = summary or ", ".join(valid[:60]) + (" ..." if len(valid) > 60 else "") or "none"
         super().__init__(f"unknown {kind} {name!r}.{hint} Valid choices: {shown}")
         self.kind, self.name, self.valid = kind, name, valid
 

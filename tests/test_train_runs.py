@@ -156,6 +156,55 @@ def test_ctrl_c_checkpoints_but_adds_no_snapshot_off_the_schedule(
     assert [n for n, _ in ckpt.snapshots(tmp_path)] == [*snapshots, 16]
 
 
+def _curves(run_dir: Path) -> tuple[list[dict], dict[str, list[tuple[int, float]]]]:
+    """metrics.jsonl and the TensorBoard scalars, without the wall-clock values."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    clock = ("time", "perf/frames_per_s", "perf/episodes_per_s")
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    records = [{k: v for k, v in json.loads(line).items() if k not in clock} for line in lines]
+    events = EventAccumulator(str(run_dir)).Reload()
+    scalars = {
+        tag: [(e.step, e.value) for e in events.Scalars(tag)]
+        for tag in events.Tags()["scalars"]
+        if tag not in clock
+    }
+    return records, scalars
+
+
+@pytest.mark.parametrize("algo", ["a3c", "ppo"])
+def test_ctrl_c_and_resume_log_the_curves_of_a_straight_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, algo: str
+) -> None:
+    """Stopped three times mid-interval (issue 25, item 12): no record at a stop, no short interval
+    after it; metrics.jsonl and TensorBoard hold what the uninterrupted run logs."""
+    from mapless.train.common import GracefulStop
+
+    extra = ["algo=ppo", "ppo.envs=2", "ppo.steps=4", "ppo.minibatches=1"] if algo == "ppo" else []
+    config = tiny_config("a3c", "batch_size=2", "episodes=12", "log_every=4", "checkpoint_every=8", *extra)
+    straight, stopped = tmp_path / "straight", tmp_path / "stopped"
+    train(config, straight, library_factory=fixture_library)
+    enter = GracefulStop.__enter__
+
+    def ctrl_c_at_once(self):  # as if Ctrl-C came during the first update of each run
+        enter(self)
+        self.requested = True
+        return self
+
+    monkeypatch.setattr(GracefulStop, "__enter__", ctrl_c_at_once)
+    assert train(config, stopped, library_factory=fixture_library)["stopped_early"]
+    for _ in range(2):
+        assert train(config, stopped, resume=_state(stopped), library_factory=fixture_library)[
+            "stopped_early"
+        ]
+    monkeypatch.setattr(GracefulStop, "__enter__", enter)
+    train(config, stopped, resume=_state(stopped), library_factory=fixture_library)
+    assert _state(stopped)["counters"] == _state(straight)["counters"]
+    records, scalars = _curves(straight)
+    assert len(records) == 3 and records[-1]["episodes"] == 12  # PPO's updates end episodes unevenly
+    assert _curves(stopped) == (records, scalars)
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [

@@ -21,7 +21,10 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         help="override a simulator setting, e.g. visibility_distance=1.5",
     )
     parser.add_argument(
-        "--cache-dir", type=Path, help="scene cache folder (default $MAPLESS_CACHE or ~/.cache/mapless)"
+        "--cache-dir",
+        type=Path,
+        help="cache root, the same as $MAPLESS_CACHE: scenes go in CACHE_DIR/scenes/ "
+        "(default $MAPLESS_CACHE or ~/.cache/mapless)",
     )
 
 

@@ -68,7 +68,9 @@ def _load(source: str, target_set: str) -> tuple[list, dict]:
 
 def _show(args: argparse.Namespace) -> int:
     episodes, header = _load(args.source, args.target_set)
-    print(f"{len(episodes)} episodes, split {header['split']} ({header['scenes']}), seed {header['seed']}")
+    print(
+        f"{len(episodes)} episodes, split {header['split']} ({header['scenes']}), seed {header.get('seed')}"
+    )
     by_room = collections.defaultdict(list)
     for e in episodes:
         by_room[e.episode_id.split("/")[1] if "/" in e.episode_id else "?"].append(e)

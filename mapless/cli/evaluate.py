@@ -150,7 +150,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     config = load_experiment(args.experiment, args.budget, args.config, args.set, args.seeds)
     # The report records the exact command (overrides included) that produced it.
     parts = ["mapless", "reproduce", args.experiment, "--budget", args.budget]
-    if args.seeds:
+    if args.seeds is not None:
         parts += ["--seeds", str(args.seeds)]
     if args.config:
         parts += ["--config", str(args.config)]

@@ -103,17 +103,27 @@ def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[lis
     path = Path(path)
     try:
         payload = json.loads(gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_text())
-    except (OSError, ValueError, EOFError, zlib.error) as error:  # EOFError, zlib.error: a torn .gz
+    except (OSError, ValueError, EOFError, zlib.error, RecursionError) as error:  # a torn .gz, deep nesting
         raise MaplessError(f"cannot read episode file {path}: {error}") from error
-    if payload.get("format") != FORMAT:
-        raise MaplessError(f"{path}: not a {FORMAT} file (format {payload.get('format')!r})")
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else f"a JSON {type(payload).__name__}"
+        raise MaplessError(f"{path}: not a {FORMAT} file (format {found!r})")
+    for key, kind in (("episodes", list), ("sim_fingerprint", str), ("split", str), ("scenes", str)):
+        if not isinstance(payload.get(key), kind):
+            raise MaplessError(f"{path}: {key!r} is missing or not a {kind.__name__}")
+    episodes = []
+    for i, entry in enumerate(payload["episodes"]):
+        try:
+            episodes.append(Episode.from_dict(entry))
+        except ValueError as error:
+            raise MaplessError(f"{path}: episode {i}: {error}") from None
     if expected_fingerprint and payload["sim_fingerprint"] != expected_fingerprint:
         raise MaplessError(
             f"{path} was made with simulator {payload['sim_fingerprint']}, but the current simulator is "
             f"{expected_fingerprint}; regenerate it with `mapless episodes make`"
         )
     header = {k: v for k, v in payload.items() if k != "episodes"}
-    return [Episode.from_dict(e) for e in payload["episodes"]], header
+    return episodes, header
 
 
 def builtin_path(split: str, target_set: str = "mjolnir22") -> Path:

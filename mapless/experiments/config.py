@@ -107,7 +107,7 @@ def load_experiment(
         raise MaplessError(
             f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
         )
-    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds else [])]
+    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds is not None else [])]
     config = load_config(ExperimentConfig, path, extra)
     if config.experiment != experiment:
         raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")

@@ -91,8 +91,9 @@ class Placeholder:
         return Placeholder(*args, **kwargs)
 
     def __repr__(self) -> str:
-        fields = {k: v for k, v in self.__dict__.items() if k != "args"}
-        return f"<{self.pickled_module}.{self.pickled_name} {fields}>"
+        # Names only: the values come from the file and may be shared or nested without bound.
+        fields = [k if isinstance(k, str) else type(k).__name__ for k in self.__dict__ if k != "args"]
+        return f"<{self.pickled_module}.{self.pickled_name} with {', '.join(fields[:8]) or 'no fields'}>"
 
 
 def _safe_load_from_bytes(data: bytes) -> Any:
@@ -171,23 +172,78 @@ def _pickled_scalar(dtype: Any, data: Any = b"") -> Any:
     return np.frombuffer(data, dtype=dtype, count=1)[0]
 
 
-def _materialize(value: Any, depth: int = 0) -> Any:
-    """The unpickled structure with every :class:`_PickledArray` rebuilt as an ndarray."""
+def _materialize(value: Any, depth: int = 0, done: dict[int, Any] | None = None) -> Any:
+    """The unpickled structure with every :class:`_PickledArray` rebuilt as an ndarray.
+
+    Each object is visited once (``done``, by id): a pickle can share one list between many
+    parents, level after level, and a walk that revisited shared objects would take 2**depth steps.
+    A cycle is refused by the depth limit."""
+    done = {} if done is None else done
     if depth > 50:
-        raise pickle.UnpicklingError("episode data nested deeper than 50 levels")
+        raise pickle.UnpicklingError("episode data nested deeper than 50 levels (or a cycle)")
+    if id(value) in done:
+        return done[id(value)]
+    result = value
     if isinstance(value, _PickledArray):
-        return value.array()
-    if isinstance(value, _PickledDtype):
-        return value.resolve()
-    if isinstance(value, list):
-        return [_materialize(v, depth + 1) for v in value]
-    if isinstance(value, tuple):
-        return tuple(_materialize(v, depth + 1) for v in value)
-    if isinstance(value, dict):
-        return {k: _materialize(v, depth + 1) for k, v in value.items()}
-    if isinstance(value, Placeholder):
-        value.__dict__.update({k: _materialize(v, depth + 1) for k, v in value.__dict__.items()})
-    return value
+        result = value.array()
+    elif isinstance(value, _PickledDtype):
+        result = value.resolve()
+    elif isinstance(value, list):
+        result = [_materialize(v, depth + 1, done) for v in value]
+    elif isinstance(value, tuple):
+        result = tuple(_materialize(v, depth + 1, done) for v in value)
+    elif isinstance(value, dict):
+        result = {k: _materialize(v, depth + 1, done) for k, v in value.items()}
+    elif isinstance(value, Placeholder):
+        value.__dict__.update({k: _materialize(v, depth + 1, done) for k, v in value.__dict__.items()})
+    done[id(value)] = result
+    return result
+
+
+def _no_size(kind: type) -> Callable[..., Any]:
+    """``bytes``/``bytearray`` for a pickle: built from data in the file, never from a size (a
+    ``bytes(10**10)`` in a few bytes of pickle would allocate gigabytes)."""
+
+    def build(*args: Any) -> Any:
+        if args and isinstance(args[0], int):
+            raise pickle.UnpicklingError(f"{kind.__name__} of a size ({args[0]}) in an episode file")
+        return kind(*args)
+
+    return build
+
+
+def _reconstructor(cls: Any, base: Any, state: Any) -> Any:
+    """``copyreg._reconstructor`` of protocol 0/1 pickles, for placeholder classes on ``object``
+    or a plain container only: other classes and bases (``bytes`` of a size) are refused."""
+    if not (isinstance(cls, type) and issubclass(cls, base) and base in _RECONSTRUCTOR_BASES):
+        raise pickle.UnpicklingError(f"copyreg._reconstructor of {cls!r} on {base!r}")
+    return copyreg._reconstructor(cls, base, state)
+
+
+_RECONSTRUCTOR_BASES = (object, list, dict, tuple, set, frozenset, int, float, str)
+
+
+def _check_opcodes(data: bytes) -> None:
+    """Walk the pickle's opcodes before the C unpickler runs: a length that runs past the end of the
+    data, or a memo index beyond the objects stored so far, is refused here, because the unpickler
+    would first allocate what it claims (gigabytes from a few bytes of a damaged file)."""
+    import pickletools
+
+    stored = 0
+    try:
+        for opcode, arg, _ in pickletools.genops(data):
+            if opcode.name == "MEMOIZE":
+                stored += 1
+            elif opcode.name in ("PUT", "BINPUT", "LONG_BINPUT"):
+                if not (isinstance(arg, int) and 0 <= arg <= stored):
+                    raise pickle.UnpicklingError(f"memo index {arg!r} out of order")
+                stored = max(stored, arg + 1)
+            elif opcode.name in ("GET", "BINGET", "LONG_BINGET") and not (
+                isinstance(arg, int) and 0 <= arg < stored
+            ):
+                raise pickle.UnpicklingError(f"memo index {arg!r} was never stored")
+    except ValueError as error:  # pickletools' own complaints (truncated data, bad opcodes, ...)
+        raise pickle.UnpicklingError(str(error)) from None
 
 
 def _safe_globals() -> dict[tuple[str, str], Any]:
@@ -204,17 +260,17 @@ def _safe_globals() -> dict[tuple[str, str], Any]:
         "float",
         "complex",
         "str",
-        "bytes",
-        "bytearray",
         "bool",
         "slice",
-        "range",
         "object",
     ):
         # "__builtin__" is how Python 2 pickles (protocol <= 2) name the same module.
         allowed[("builtins", name)] = allowed[("__builtin__", name)] = getattr(builtins, name)
-    allowed[("copyreg", "_reconstructor")] = copyreg._reconstructor
-    allowed[("copy_reg", "_reconstructor")] = copyreg._reconstructor
+    for name in ("bytes", "bytearray"):
+        allowed[("builtins", name)] = allowed[("__builtin__", name)] = _no_size(getattr(builtins, name))
+    # range is left out: list(range(10**12)) would be a few bytes of pickle.
+    allowed[("copyreg", "_reconstructor")] = _reconstructor
+    allowed[("copy_reg", "_reconstructor")] = _reconstructor
     allowed[("_codecs", "encode")] = __import__("codecs").encode
     allowed[("collections", "OrderedDict")] = collections.OrderedDict
     # numpy's own reconstructors would trust the file's dtype and byte states (a crafted structured
@@ -276,24 +332,32 @@ def _start_of(state: Any) -> tuple[float, float, int, int]:
         return parse_pose_key(state)
     values = state if isinstance(state, dict) else getattr(state, "__dict__", {})
     try:
-        return (
-            round(float(values["x"]), 2),
-            round(float(values["z"]), 2),
-            round(float(values["rotation"])),
-            round(float(values["horizon"])),
-        )
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"start state {state!r} has no x, z, rotation, horizon") from None
+        numbers = [values[k] for k in ("x", "z", "rotation", "horizon")]
+        if not all(isinstance(v, int | float | np.number) for v in numbers):
+            raise TypeError
+        x, z, rotation, horizon = (float(v) for v in numbers)
+        return round(x, 2), round(z, 2), round(rotation), round(horizon)
+    except (KeyError, TypeError, ValueError, OverflowError):  # round() of inf or NaN included
+        shown = state if isinstance(state, Placeholder | str) else type(state).__name__
+        raise ValueError(f"start state {shown!r} has no finite x, z, rotation, horizon") from None
 
 
 def _as_array(value: Any) -> np.ndarray | None:
     if value is None:
         return None
-    if hasattr(value, "detach"):  # torch tensor
-        return value.detach().cpu().numpy()
+    import torch
+
     try:
+        if isinstance(value, torch.Tensor):
+            # Through the class, not the instance: a tensor's pickled state may set attributes on it.
+            value = torch.Tensor.detach(value).cpu().to(torch.float64).numpy()
         return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (
+        TypeError,
+        ValueError,
+        RuntimeError,
+        OverflowError,
+    ):  # not numbers, ragged, huge, a dtype numpy lacks
         return None
 
 
@@ -303,22 +367,15 @@ def read_episode_file(path: str | Path) -> tuple[list[RawEpisode], list[tuple[in
     if not path.is_file():
         raise OfflineFormatError(path, "no such episode file")
     try:
-        with path.open("rb") as f:
-            data = _materialize(EpisodeUnpickler(f).load())
-    except (
-        pickle.UnpicklingError,
-        EOFError,
-        ValueError,
-        TypeError,
-        AttributeError,
-        ImportError,
-        IndexError,
-        KeyError,
-        RuntimeError,
-        RecursionError,
-    ) as error:
+        raw = path.read_bytes()
+    except OSError as error:
+        raise OfflineFormatError(path, f"cannot be read ({error})") from None
+    try:
+        _check_opcodes(raw)
+        data = _materialize(EpisodeUnpickler(io.BytesIO(raw)).load())
+    except Exception as error:  # whatever the allowed constructors raise on crafted arguments
         raise OfflineFormatError(
-            path, f"not a readable episode pickle ({type(error).__name__}: {error})"
+            path, f"not a readable episode pickle ({type(error).__name__}: {str(error)[:200]})"
         ) from None
     if not isinstance(data, list | tuple):
         raise OfflineFormatError(path, f"expected a list of episode dicts, found {type(data).__name__}")
@@ -337,14 +394,21 @@ def read_episode_file(path: str | Path) -> tuple[list[RawEpisode], list[tuple[in
         except ValueError as error:
             bad.append((i, str(error)))
             continue
+        not_text = [k for k in ("scene", "goal_object_type") if not isinstance(entry[k], str)]
+        if not_text or not isinstance(entry.get("room"), str | None):
+            bad.append((i, f"entry's {', '.join(not_text) or 'room'} is not a string"))
+            continue
         task = entry["task_data"]
-        ids = (task,) if isinstance(task, str) else tuple(str(t) for t in task or ())
+        ids = (task,) if isinstance(task, str) else task if isinstance(task, list | tuple) else None
+        if task is not None and (ids is None or not all(isinstance(t, str) for t in ids)):
+            bad.append((i, f"task_data is not an object id or a list of object ids ({type(task).__name__})"))
+            continue
         episodes.append(
             RawEpisode(
                 index=i,
-                scene=str(entry["scene"]),
-                target_type=str(entry["goal_object_type"]),
-                target_ids=ids,
+                scene=entry["scene"],
+                target_type=entry["goal_object_type"],
+                target_ids=tuple(ids or ()),
                 start=start,
                 room=entry.get("room"),
                 embedding=_as_array(entry.get("glove_embedding")),

@@ -58,8 +58,44 @@ def _read_json(path: Path) -> Any:
             return json.load(f)
     except json.JSONDecodeError as error:
         raise OfflineFormatError(path, f"malformed JSON ({error})") from None
+    except RecursionError:
+        raise OfflineFormatError(path, "malformed JSON (nested too deeply)") from None
     except (OSError, UnicodeDecodeError) as error:
         raise OfflineFormatError(path, f"cannot be read ({error})") from None
+
+
+_SIDE_DTYPES = ("uint8", "int8", "uint16", "int16", "float16", "float32", "float64")
+#: Fields of mapless' side file and the check each value must pass.
+_SIDE_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "feature_kind": (lambda v: isinstance(v, str), "a string"),
+    "feature_channels": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a count >= 0"),
+    "feature_scale": (
+        lambda v: isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) and v > 0,
+        "a positive number",
+    ),
+    "features_dtype": (lambda v: v in _SIDE_DTYPES, f"one of {', '.join(_SIDE_DTYPES)}"),
+    "alias_types": (lambda v: isinstance(v, list) and all(isinstance(t, str) for t in v), "a list of types"),
+    "scene": (lambda v: isinstance(v, str), "a string"),
+    "room_type": (lambda v: isinstance(v, str), "a string"),
+}
+
+
+def _side_file(path: Path) -> dict:
+    """mapless' side file (:data:`SIDE_FILE`), each known field checked: its values size and type
+    the feature array, so a bad one must be an error naming the file, not a numpy traceback."""
+    if not path.is_file():
+        return {}
+    side = _read_json(path)
+    if not isinstance(side, dict):
+        raise OfflineFormatError(path, "expected a JSON object")
+    for key, (valid, expected) in _SIDE_FIELDS.items():
+        if key in side and not valid(side[key]):
+            raise OfflineFormatError(path, f"{key} {side[key]!r} is not {expected}")
+    if side.get("feature_kind") == "semantic":
+        missing = [k for k in ("feature_channels", "feature_scale", "features_dtype") if k not in side]
+        if missing:
+            raise OfflineFormatError(path, f"semantic features need {', '.join(missing)}")
+    return side
 
 
 def _graph(path: Path) -> tuple[list[str], list[set[int]]]:
@@ -166,10 +202,14 @@ def _boxes(path: Path, index: dict[str, int]) -> tuple[dict[int, dict[str, np.nd
             continue
         row: dict[str, np.ndarray] = {}
         for object_type, flat in by_type.items():
-            values = np.asarray(flat, dtype=np.float64) if isinstance(flat, list) else None
-            if values is None or values.ndim != 1 or len(values) % 4:
+            numbers = isinstance(flat, list) and all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in flat
+            )
+            values = np.asarray(flat, dtype=np.float64) if numbers else None
+            if values is None or not np.isfinite(values).all() or len(values) % 4:
                 raise OfflineFormatError(
-                    path, f"pose {key!r}, {object_type!r}: boxes must be a flat list of 4-tuples"
+                    path,
+                    f"pose {key!r}, {object_type!r}: boxes must be a flat list of finite numbers, 4 per box",
                 )
             row[object_type] = values.reshape(-1, 4)
         out[index[key]] = row
@@ -190,50 +230,69 @@ def _features(
         f = h5py.File(path, "r")
     except OSError as error:
         raise OfflineFormatError(path, f"not a readable HDF5 file ({error})") from None
-    with f:
-        missing = [k for k in keys if k not in f]
-        if missing:
+    try:
+        with f:
+            return _read_features(f, path, keys, mode, side, dtype)
+    except MaplessError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, MemoryError) as error:
+        # h5py's errors on a damaged file (a broken B-tree, a link past the end, absurd sizes, ...)
+        raise OfflineFormatError(path, f"damaged HDF5 file ({type(error).__name__}: {error})") from None
+
+
+def _read_features(
+    f: Any, path: Path, keys: list[str], mode: str, side: dict, dtype: np.dtype
+) -> tuple[np.ndarray, float, str]:
+    import h5py
+
+    missing = [k for k in keys if k not in f]
+    if missing:
+        raise OfflineFormatError(
+            path,
+            f"{len(missing)} of the {len(keys)} poses of {GRAPH_FILE} have no feature map "
+            f"(first: {', '.join(repr(k) for k in missing[:3])})",
+        )
+    first = f[keys[0]]
+    shape = getattr(first, "shape", None)
+    if shape is None or not (
+        len(shape) in (3, 4)
+        and shape[-2:] == (FEATURE_SIDE, FEATURE_SIDE)
+        and (len(shape) == 3 or shape[0] == 1)
+    ):
+        raise OfflineFormatError(
+            path,
+            f"dataset {keys[0]!r} has shape {shape}; expected (1, C, 7, 7) (SAVN) or (C, 7, 7) (MJOLNIR)",
+        )
+    semantic = mode == "auto" and side.get("feature_kind") == "semantic"
+    if semantic:
+        # mapless' own export: read only the real channels and re-quantise to the stored dtype.
+        channels, scale = int(side["feature_channels"]), float(side["feature_scale"])
+        stored = np.dtype(side["features_dtype"])
+        if channels > shape[-3]:
             raise OfflineFormatError(
-                path,
-                f"{len(missing)} of the {len(keys)} poses of {GRAPH_FILE} have no feature map "
-                f"(first: {', '.join(repr(k) for k in missing[:3])})",
+                path.with_name(SIDE_FILE),
+                f"feature_channels {channels} exceeds the {shape[-3]} channels of {path.name}",
             )
-        first = f[keys[0]]
-        shape = getattr(first, "shape", None)
-        if shape is None or not (
-            len(shape) in (3, 4)
-            and shape[-2:] == (FEATURE_SIDE, FEATURE_SIDE)
-            and (len(shape) == 3 or shape[0] == 1)
-        ):
-            raise OfflineFormatError(
-                path,
-                f"dataset {keys[0]!r} has shape {shape}; expected (1, C, 7, 7) (SAVN) or (C, 7, 7) (MJOLNIR)",
-            )
-        semantic = mode == "auto" and side.get("feature_kind") == "semantic"
-        if semantic:
-            # mapless' own export: read only the real channels and re-quantise to the stored dtype.
-            channels, scale = int(side["feature_channels"]), float(side["feature_scale"])
-            stored = np.dtype(side["features_dtype"])
-        else:
-            channels, scale, stored = shape[-3], 1.0, dtype
-        out = np.empty((len(keys), channels, FEATURE_SIDE, FEATURE_SIDE), dtype=stored)
-        selection = (0, slice(0, channels)) if len(shape) == 4 else (slice(0, channels),)
-        for p, key in enumerate(keys):
-            dataset = f[key]
-            if not isinstance(dataset, h5py.Dataset):
-                raise OfflineFormatError(path, f"{key!r} is a group, not a dataset")
-            if dataset.shape != shape:
-                raise OfflineFormatError(path, f"dataset {key!r} has shape {dataset.shape}, others {shape}")
-            try:
-                values = np.asarray(dataset[selection], dtype=np.float32)
-            except (OSError, ValueError, TypeError) as error:
-                raise OfflineFormatError(path, f"dataset {key!r} cannot be read ({error})") from None
-            if semantic and np.issubdtype(stored, np.integer):
-                info = np.iinfo(stored)
-                values = np.clip(np.rint(values / scale), info.min, info.max)
-            elif semantic:
-                values = values / scale
-            out[p] = values
+    else:
+        channels, scale, stored = shape[-3], 1.0, dtype
+    out = np.empty((len(keys), channels, FEATURE_SIDE, FEATURE_SIDE), dtype=stored)
+    selection = (0, slice(0, channels)) if len(shape) == 4 else (slice(0, channels),)
+    for p, key in enumerate(keys):
+        dataset = f[key]
+        if not isinstance(dataset, h5py.Dataset):
+            raise OfflineFormatError(path, f"{key!r} is a group, not a dataset")
+        if dataset.shape != shape:
+            raise OfflineFormatError(path, f"dataset {key!r} has shape {dataset.shape}, others {shape}")
+        try:
+            values = np.asarray(dataset[selection], dtype=np.float32)
+        except (OSError, ValueError, TypeError) as error:
+            raise OfflineFormatError(path, f"dataset {key!r} cannot be read ({error})") from None
+        if semantic and np.issubdtype(stored, np.integer):
+            info = np.iinfo(stored)
+            values = np.clip(np.rint(values / scale), info.min, info.max)
+        elif semantic:
+            values = values / scale
+        out[p] = values
     return out, scale, "semantic" if semantic else "resnet18"
 
 
@@ -263,10 +322,7 @@ def load_offline_scene(
         raise OfflineFormatError(folder, "not a directory")
     if features not in FEATURE_MODES:
         raise UnknownNameError("feature mode", features, FEATURE_MODES)
-    side_path = folder / SIDE_FILE
-    side = _read_json(side_path) if side_path.is_file() else {}
-    if not isinstance(side, dict):
-        raise OfflineFormatError(side_path, "expected a JSON object")
+    side = _side_file(folder / SIDE_FILE)
 
     keys, graph_successors = _graph(folder / GRAPH_FILE)
     if not keys:
@@ -417,6 +473,8 @@ def find_scene_folder(root: str | Path, scene: str) -> Path:
     """The folder of ``scene`` under an offline data root, whichever naming it uses
     (``FloorPlan1``, SAVN's ``FloorPlan1_physics``, or the name verbatim)."""
     root = Path(root)
+    if not root.is_dir():
+        raise OfflineFormatError(root, "no such offline data root (a folder of scene folders)")
     base = scene.removesuffix("_physics")
     for name in dict.fromkeys((scene, base, f"{base}_physics")):
         if (root / name / GRAPH_FILE).is_file():

@@ -1,9 +1,15 @@
 """On-disk cache of built scenes.
 
-A cache entry is ``<cache_dir>/<fingerprint>/<scene>.npz``. The fingerprint hashes every simulator
-parameter, the simulator's version and the scene data file, so changing any of them selects a fresh
-folder. Each file also stores its fingerprint and the checksum of its arrays; a file that does not
-load, carries another fingerprint or fails the checksum is rebuilt, never used.
+A cache entry is ``<root>/scenes/<fingerprint>/<scene>.npz``, where the root is ``--cache-dir``
+(``env.cache_dir``), else ``$MAPLESS_CACHE``, else ``~/.cache/mapless``: the option and the variable
+name the same folder, so one cache serves both. The fingerprint hashes every simulator parameter,
+the simulator's version and the scene data file, so changing any of them selects a fresh folder.
+Each file also stores its fingerprint, its scene and the checksum of its arrays; a file that does
+not load, carries another fingerprint or scene or fails the checksum is rebuilt, never used.
+
+A cache that cannot be written (read-only, a folder in the way) does not waste the build: the scene
+is used from memory with a warning; ``mapless scenes build``, whose only job is to write the cache,
+refuses it up front instead.
 """
 
 from __future__ import annotations
@@ -12,11 +18,14 @@ import functools
 import hashlib
 import json
 import os
+import tempfile
+import warnings
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from mapless.errors import MaplessError
 from mapless.files import replacing
 from mapless.scenes.catalogue import canonical_scene
 from mapless.scenes.layout import SCENE_FILE, load_scene
@@ -32,8 +41,19 @@ _ARRAY_FIELDS = (
 )  # fmt: skip
 
 
+def scenes_dir(cache_dir: str | Path | None = None) -> Path:
+    """The scene folder of the cache root ``cache_dir`` (default ``$MAPLESS_CACHE``, else
+    ``~/.cache/mapless``): ``<root>/scenes``."""
+    root = cache_dir or os.environ.get("MAPLESS_CACHE") or Path.home() / ".cache" / "mapless"
+    return Path(root) / "scenes"
+
+
 def default_cache_dir() -> Path:
-    return Path(os.environ.get("MAPLESS_CACHE", Path.home() / ".cache" / "mapless")) / "scenes"
+    return scenes_dir()
+
+
+class CacheError(MaplessError):
+    """The scene cache cannot be written where it must be (``mapless scenes build``)."""
 
 
 @functools.cache
@@ -55,8 +75,20 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
     return digest.hexdigest()
 
 
-def cache_path(scene: str, config: SimConfig, cache_dir: Path | None = None) -> Path:
-    return Path(cache_dir or default_cache_dir()) / fingerprint(config) / f"{canonical_scene(scene)}.npz"
+def cache_path(scene: str, config: SimConfig, cache_dir: str | Path | None = None) -> Path:
+    """Where ``scene``'s file lives under the cache root ``cache_dir`` (see :func:`scenes_dir`)."""
+    return scenes_dir(cache_dir) / fingerprint(config) / f"{canonical_scene(scene)}.npz"
+
+
+def unwritable(folder: Path) -> str | None:
+    """Why no file can be written in ``folder`` (made if missing), or None when one can."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+            pass
+    except OSError as error:
+        return f"{type(error).__name__}: {error.strerror or error}"
+    return None
 
 
 def save(data: SceneData, path: Path, config: SimConfig) -> None:
@@ -96,6 +128,12 @@ def load(path: Path, config: SimConfig) -> SceneData:
         raise StaleCacheError(f"{path}: holds scene {header.get('scene')!r}, not {path.stem!r}")
     if header.get("checksum") != _checksum(arrays):
         raise StaleCacheError(f"{path}: checksum mismatch")
+    try:
+        problem = _inconsistency(header, arrays)
+    except (TypeError, ValueError, IndexError):  # 0-d or non-numeric arrays
+        problem = "arrays of unexpected shapes or types"
+    if problem:  # a crafted file: the checksum covers the arrays, not what they must agree on
+        raise StaleCacheError(f"{path}: {problem}")
     return SceneData(
         scene=header["scene"],
         room_type=header["room_type"],
@@ -107,10 +145,54 @@ def load(path: Path, config: SimConfig) -> SceneData:
     )
 
 
+def _inconsistency(header: dict, arrays: dict[str, np.ndarray]) -> str | None:
+    """What is wrong with a cache file whose checksum holds, or None: header fields of the wrong
+    type, or arrays whose sizes and indices disagree (they would fail mid-episode, not here)."""
+    kinds = {
+        "room_type": str,
+        "instance_ids": list,
+        "instance_types": list,
+        "feature_scale": float,
+        "meta": dict,
+    }
+    wrong = [k for k, kind in kinds.items() if not isinstance(header.get(k), kind)]
+    if wrong:
+        return f"header field {wrong[0]!r} is missing or not a {kinds[wrong[0]].__name__}"
+    ids, types = header["instance_ids"], header["instance_types"]
+    if len(ids) != len(types) or not all(isinstance(t, str) for t in ids + types):
+        return "instance ids and types are not two lists of names of one length"
+    if not all(arrays[k].dtype.kind in "biuf" for k in _ARRAY_FIELDS):
+        return "arrays that are not numbers"
+    poses = len(arrays["x"])
+    ptr, entries = arrays["view_ptr"], len(arrays["view_instance"])
+    checks = (
+        all(arrays[k].shape == (poses,) for k in ("x", "z", "yaw", "horizon")),
+        arrays["successors"].ndim == 2 and arrays["successors"].shape[0] == poses,
+        all(np.issubdtype(arrays[k].dtype, np.integer) for k in ("successors", "view_ptr", "view_instance")),
+        arrays["successors"].size == 0
+        or 0 <= arrays["successors"].min() <= arrays["successors"].max() < poses,
+        ptr.shape == (poses + 1,) and ptr[0] == 0 and ptr[-1] == entries and bool(np.all(np.diff(ptr) >= 0)),
+        entries == 0 or 0 <= arrays["view_instance"].min() <= arrays["view_instance"].max() < len(ids),
+        arrays["view_box"].shape == (entries, 4),
+        arrays["view_distance"].shape == arrays["view_visible"].shape == (entries,),
+        arrays["context"].ndim == 3 and arrays["context"].shape[0] == poses,
+        arrays["features"].ndim == 4 and arrays["features"].shape[0] == poses,
+    )
+    return None if all(checks) else "arrays of inconsistent sizes or indices"
+
+
 def load_or_build(
-    scene: str, config: SimConfig | None = None, cache_dir: Path | None = None, rebuild: bool = False
+    scene: str,
+    config: SimConfig | None = None,
+    cache_dir: str | Path | None = None,
+    rebuild: bool = False,
+    must_write: bool = False,
 ) -> SceneData:
-    """The scene's data from the cache, building (and caching) it when missing, stale or corrupt."""
+    """The scene's data from the cache, building (and caching) it when missing, stale or corrupt.
+
+    A file that cannot be written (a read-only cache, a folder where the file should be, the cache
+    deleted under the build) leaves the built scene in memory with a warning, or raises
+    :class:`CacheError` when ``must_write``."""
     config = config or SimConfig()
     path = cache_path(scene, config, cache_dir)
     if path.exists() and not rebuild:
@@ -119,7 +201,17 @@ def load_or_build(
         except StaleCacheError:
             pass
     data = build_scene_data(load_scene(scene), config)
-    save(data, path, config)
+    try:
+        save(data, path, config)
+    except OSError as error:
+        problem = (
+            f"cannot write the scene cache file {path} ({type(error).__name__}: {error.strerror or error})"
+        )
+        if must_write:
+            raise CacheError(
+                f"{problem}; make the folder writable or choose another with --cache-dir"
+            ) from None
+        warnings.warn(f"{problem}; {scene} is kept in memory and will be built again next time", stacklevel=2)
     return data
 
 
@@ -146,6 +238,14 @@ def build_many(
         scenes = [s for s in dict.fromkeys(scenes) if not cache_path(s, config, cache_dir).exists()]
     if not scenes:
         return []
+    folder = cache_path(scenes[0], config, cache_dir).parent
+    problem = unwritable(folder)
+    if problem is not None:  # checked before the minutes of ray casting, not after
+        message = f"the scene cache {folder} is not writable ({problem})"
+        if not missing_only:
+            raise CacheError(f"{message}; choose another folder with --cache-dir or $MAPLESS_CACHE")
+        warnings.warn(f"{message}; each scene is built in memory when first used", stacklevel=2)
+        return []
     jobs = [(s, config, cache_dir, rebuild) for s in scenes]
     bar = tqdm(total=len(jobs), desc="building scenes", unit="scene", disable=not progress)
     paths = []
@@ -164,5 +264,5 @@ def build_many(
 
 def _build_job(job: tuple) -> Path:
     scene, config, cache_dir, rebuild = job
-    load_or_build(scene, config, cache_dir, rebuild)
+    load_or_build(scene, config, cache_dir, rebuild, must_write=True)
     return cache_path(scene, config, cache_dir)

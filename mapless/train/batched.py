@@ -67,6 +67,7 @@ class BatchedTrainer:
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self._clock, self._out_of_time = time.perf_counter(), False
         self._snapshot_due = False  # the last update crossed a checkpoint_every boundary
+        self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
 
     # -- setup -----------------------------------------------------------------------------------
     def _setup(self, resume: dict | None) -> None:
@@ -131,6 +132,7 @@ class BatchedTrainer:
             self.ctx.world_size,
             final,
             snapshot,
+            self.monitor.state() if self.monitor is not None else None,
         )
 
     # -- loop ------------------------------------------------------------------------------------
@@ -162,7 +164,7 @@ class BatchedTrainer:
         """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
         cfg = self.config
         self._setup(resume)
-        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, self.label)
+        monitor = self.monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, self.label, resume)
         start, start_frames = time.perf_counter(), self.counters["frames"]
         self._clock, self._out_of_time = start, False
         first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)
@@ -180,7 +182,7 @@ class BatchedTrainer:
             # A stop writes a snapshot only where the schedule puts one (its update crossed it).
             self._checkpoint(final=not stopped, snapshot=not stopped or self._snapshot_due)
         finally:
-            monitor.close()
+            monitor.close(partial_record=not stopped)
         return run_summary(
             self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
         )

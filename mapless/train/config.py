@@ -38,7 +38,8 @@ class EnvConfig:
     parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
     step_penalty, success_reward: SAVN's rewards.
     max_steps: training episode limit (30 in both references).
-    cache_dir: scene cache folder (None = $MAPLESS_CACHE or ~/.cache/mapless).
+    cache_dir: cache root, as $MAPLESS_CACHE (scenes go in ``<cache_dir>/scenes/``; None = $MAPLESS_CACHE
+        or ~/.cache/mapless).
     offline_dir: a SAVN/MJOLNIR offline data root to train on instead of the built-in simulator
         (docs/interop.md; its 512-channel ResNet maps need ``model.feature_channels=512``).
     sim: simulator parameters (they select the scene cache entry).

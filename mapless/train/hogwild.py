@@ -150,13 +150,24 @@ class AsyncTrainer:
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self.workers: list[Any] = []
         self._clock = time.perf_counter()
+        self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
 
     # -- checkpoints -----------------------------------------------------------------------------
     def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
         if self.run_dir is None:
             return
+        monitor = self.monitor.state() if self.monitor is not None else None
         ckpt.save_run_state(
-            self.run_dir, self.model, self.optimizer, self.config, self.counters, [], 1, final, snapshot
+            self.run_dir,
+            self.model,
+            self.optimizer,
+            self.config,
+            self.counters,
+            [],
+            1,
+            final,
+            snapshot,
+            monitor,
         )
 
     def _budget_reached(self) -> bool:
@@ -259,7 +270,7 @@ class AsyncTrainer:
             self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
         self.model.share_memory()
         self.optimizer.share_memory()
-        monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "async")
+        monitor = self.monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "async", resume)
         start, start_frames = time.perf_counter(), self.counters["frames"]
         self._clock = start
         first: tuple[float, int] | None = None  # (time, frames) of the first finished episode
@@ -288,7 +299,7 @@ class AsyncTrainer:
             self._checkpoint(final=not stopped, snapshot=not stopped)
         finally:
             self._stop_workers()
-            monitor.close()
+            monitor.close(partial_record=not stopped)
         return run_summary(
             self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
         )

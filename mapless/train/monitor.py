@@ -19,6 +19,11 @@ Logged every ``log_every`` episodes, as means over the episodes finished since t
 
 The progress bar shows episodes (or frames, when that is the budget), frames/s, the running success
 rate of the last 1000 episodes and tqdm's ETA.
+
+An interrupted run logs the curves of an uninterrupted one: a graceful stop (Ctrl-C, SIGTERM) writes
+no record for the unfinished interval; the interval's values so far go into the checkpoint
+(:meth:`RunMonitor.state`), and the resumed run completes that interval with them. Only the wall-clock
+values (``perf/*_per_s``, ``time``) differ.
 """
 
 from __future__ import annotations
@@ -39,9 +44,12 @@ METRICS_FILE = "metrics.jsonl"
 
 class RunMonitor:
     @classmethod
-    def for_run(cls, run_dir: Path | None, config, counters: dict[str, int], mode: str) -> RunMonitor:
-        """The monitor of a trainer with ``config`` (a TrainConfig), resuming at ``counters``."""
-        return cls(
+    def for_run(
+        cls, run_dir: Path | None, config, counters: dict[str, int], mode: str, resume: dict | None = None
+    ) -> RunMonitor:
+        """The monitor of a trainer with ``config`` (a TrainConfig), resuming at ``counters`` with the
+        :meth:`state` stored in the checkpoint ``resume`` (when it has one)."""
+        monitor = cls(
             run_dir,
             config.log_every,
             config.episodes,
@@ -51,6 +59,19 @@ class RunMonitor:
             progress=config.progress,
             description=f"{config.model.name} {mode}",
         )
+        saved = (resume or {}).get("monitor")
+        if isinstance(saved, dict):  # checkpoints written before this field have none
+            monitor._window = {str(k): [float(v) for v in values] for k, values in saved["window"].items()}
+            monitor._running.extend(bool(v) for v in saved["running"])
+        return monitor
+
+    def state(self) -> dict:
+        """What a resumed run needs to log as this one would have: the values of the interval in
+        progress and the window of the running success rate (plain lists, for the checkpoint)."""
+        return {
+            "window": {key: list(values) for key, values in self._window.items()},
+            "running": list(self._running),
+        }
 
     def __init__(
         self,
@@ -177,10 +198,12 @@ class RunMonitor:
             self._jsonl.flush()
         return record
 
-    def close(self) -> None:
-        """Write the episodes since the last record (a run stopped on time or by Ctrl-C, or a budget
-        that is not a multiple of ``log_every``), then close the logs."""
-        if any(self._window.values()):
+    def close(self, partial_record: bool = True) -> None:
+        """Write the episodes since the last record (a run stopped on time or by an error, or a budget
+        that is not a multiple of ``log_every``), then close the logs. ``partial_record`` False (a
+        graceful stop, to be resumed) leaves that interval to the resumed run, which completes it from
+        the checkpoint's :meth:`state`: an extra record here would make its next one a short one."""
+        if partial_record and any(self._window.values()):
             self._write()
         if self.writer is not None:
             self.writer.flush()

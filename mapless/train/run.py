@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from mapless import checkpoint as ckpt
@@ -76,6 +77,22 @@ def remove_torn_writes(run_dir: Path) -> None:
             torn.unlink(missing_ok=True)
 
 
+def _remove_if_unused(run_dir: Path) -> Callable[..., bool]:
+    """An exit callback that deletes the run folder this call made when the run fails before
+    writing anything but its config and lock (a bad scene root, a scene that cannot load): a folder
+    holding only config.yaml looks like a run and would be picked up by --resume or selection. A
+    failure after logs or a checkpoint were written keeps them, for the diagnosis or the resume."""
+
+    def callback(kind: type | None, error: BaseException | None, tb: object) -> bool:
+        if error is not None and run_dir.is_dir():
+            names = {p.name for p in run_dir.iterdir()}
+            if names <= {ckpt.CONFIG_FILE, LOCK_FILE}:
+                shutil.rmtree(run_dir, ignore_errors=True)
+        return False
+
+    return callback
+
+
 def train(
     config: TrainConfig,
     run_dir: str | Path,
@@ -98,6 +115,8 @@ def train(
         if resume is not None and ckpt.config_of(resume).model != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
+            if not run_dir.exists():
+                stack.push(_remove_if_unused(run_dir))
             run_dir.mkdir(parents=True, exist_ok=True)
             stack.enter_context(run_folder_lock(run_dir))
             remove_torn_writes(run_dir)

@@ -1,0 +1,253 @@
+"""Malformed user files and unusable folders end in one clear line (``mapless: error: ...``, exit 2)
+or are handled, never in a traceback (issue 25, items 7, 10, 11 and 15). Every bad file is made here."""
+
+from __future__ import annotations
+
+import errno
+import json
+import pickle
+import re
+import shutil
+
+import pytest
+from scene_fixtures import grid_scene
+
+from mapless.cli import main
+from mapless.config import ConfigError, load_config
+from mapless.episodes import evalsets
+from mapless.offline import OfflineFormatError, export_scene, load_offline_scene, read_episode_file
+from mapless.sim import cache
+from mapless.sim.config import SimConfig
+from mapless.train.config import TrainConfig
+
+SCENE = "FloorPlan425"  # the smallest bathroom
+FAST = SimConfig(ray_resolution=14)
+FAST_ARGS = ["--sim", "ray_resolution=14"]
+
+
+def error_of(argv: list[str], capsys) -> str:
+    """The one-line error of a command that must fail cleanly (exit 2, no traceback)."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.count("mapless: error: ") == 1, err
+    # the one line (a progress bar may precede it on the same terminal line)
+    return err[err.index("mapless: error: ") :].splitlines()[0]
+
+
+# ----------------------------------------------------------------------------------------- configs
+
+
+def test_a_config_that_is_not_utf8_is_a_config_error(tmp_path, capsys):
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("seed: 1\n# r\xe9sum\xe9\n".encode("latin-1"))
+    assert "not UTF-8" in error_of(["train", str(path)], capsys)
+
+
+def test_an_unknown_nested_key_is_quoted_whole(tmp_path):
+    path = tmp_path / "typo.yaml"
+    path.write_text("optim:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"unknown config key 'optim\.learning_rate'; valid keys here: "):
+        load_config(TrainConfig, path)
+    path.write_text("optim:\n  1: 0.1\n  lr_: 0.2\n")  # keys of mixed types are still sorted
+    with pytest.raises(ConfigError, match=r"unknown config key 'optim\.1'"):
+        load_config(TrainConfig, path)
+
+
+def test_a_missing_offline_root_is_named_and_leaves_no_run_folder(tmp_path, capsys):
+    config = tmp_path / "offline.yaml"
+    config.write_text("model:\n  name: mlp\nenv:\n  scenes: FloorPlan1\nepisodes: 16\nbatch_size: 4\n")
+    runs = tmp_path / "runs"
+    argv = [
+        "train",
+        str(config),
+        "--set",
+        f"env.offline_dir={tmp_path / 'nowhere'}",
+        "--runs-root",
+        str(runs),
+    ]
+    err = error_of(argv, capsys)
+    assert "no such offline data root" in err and "Valid choices" not in err
+    assert not runs.exists() or not list(runs.iterdir())  # no folder holding only config.yaml
+
+
+def test_an_empty_list_of_choices_says_none():
+    from mapless.errors import UnknownNameError
+
+    assert str(UnknownNameError("scene folder in /x", "FloorPlan1", [])).endswith("Valid choices: none")
+
+
+def test_an_empty_checkpoint_gives_a_reason(tmp_path):
+    from mapless.checkpoint import CheckpointError, load_file
+
+    empty = tmp_path / "checkpoint.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"cannot read checkpoint .*checkpoint\.pt: \S"):
+        load_file(empty)
+
+
+def test_counts_below_one_are_refused_by_the_parser(capsys):
+    for argv in (["eval", "random", "--per-room", "0"], ["reproduce", "table1", "--seeds", "0"]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2 and "must be >= 1, got 0" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------- episode files
+
+
+def _episode_json(tmp_path, payload) -> str:
+    path = tmp_path / "episodes.json"
+    path.write_text(json.dumps(payload))
+    return str(path)
+
+
+def _header(episodes: list) -> dict:
+    return {
+        "format": evalsets.FORMAT,
+        "split": "val",
+        "scenes": "x21-x25",
+        "target_set": "mjolnir22",
+        "seed": 0,
+        "sim_fingerprint": "0" * 16,
+        "episodes": episodes,
+    }
+
+
+@pytest.mark.parametrize(
+    ("payload", "message"),
+    [
+        ([1, 2], "not a mapless-episodes/1 file"),
+        (_header([{"scene": "FloorPlan21", "target": "Apple"}]), "episode 0: episode has no start"),
+        (
+            _header([{"scene": "FloorPlan21", "target": "Apple", "start": [0, 0, "a", 0]}]),
+            "episode 0: .*start",
+        ),
+        (_header([{"scene": 21, "target": "Apple", "start": [0, 0, 0, 0]}]), "scene 21 is not a string"),
+        ({**_header([]), "episodes": {"a": 1}}, "'episodes' is missing or not a list"),
+    ],
+    ids=["top-level-list", "no-start", "bad-start", "scene-number", "episodes-mapping"],
+)
+def test_malformed_episode_json_is_one_error(tmp_path, capsys, payload, message):
+    err = error_of(["episodes", "show", _episode_json(tmp_path, payload)], capsys)
+    assert "episodes.json" in err
+    assert re.search(message, err), err
+
+
+def test_an_episode_pickle_with_bad_task_data_skips_the_entry_with_a_reason(tmp_path, capsys):
+    path = tmp_path / "task5.pkl"
+    entry = {"scene": "FloorPlan1", "goal_object_type": "Mug", "state": "0.00|0.00|0|0"}
+    path.write_bytes(pickle.dumps([{**entry, "task_data": 5}, {**entry, "task_data": [b"id"]}]))
+    episodes, bad = read_episode_file(path)
+    assert not episodes and [i for i, _ in bad] == [0, 1]
+    assert all("task_data is not an object id or a list of object ids" in reason for _, reason in bad)
+    assert main(["interop", "episodes-import", str(path)]) == 0
+    assert "0 of 2 episodes mapped, 2 skipped" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------------ offline folders
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return grid_scene()
+
+
+@pytest.mark.parametrize(
+    "boxes",
+    [["a", 1, 2, 3], [[1, 2, 3, 4], [1, 2]], [1, 2, 3, None], [1, 2, 3, True], [1, 2, 3, float("nan")]],
+    ids=["text", "ragged", "null", "bool", "nan"],
+)
+def test_bad_boxes_name_the_file(scene, tmp_path, capsys, boxes):
+    folder = export_scene(scene, tmp_path, "mjolnir")
+    path = folder / "objects_bb.json"
+    data = json.loads(path.read_text())
+    pose = next(iter(data))
+    data[pose] = {"Mug": boxes}
+    path.write_text(json.dumps(data))
+    err = error_of(["interop", "check", str(folder)], capsys)
+    assert "objects_bb.json" in err and "boxes must be a flat list of finite numbers" in err
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("feature_channels", "many", "feature_channels 'many' is not a count"),
+        ("feature_channels", 100000, "feature_channels 100000 exceeds the 512 channels"),
+        ("features_dtype", "object", "features_dtype 'object' is not one of"),
+        ("features_dtype", 7, "features_dtype 7 is not one of"),
+        ("feature_scale", 0, "feature_scale 0 is not a positive number"),
+        ("alias_types", 3, "alias_types 3 is not a list of types"),
+    ],
+)
+def test_a_bad_side_file_names_the_file(scene, tmp_path, capsys, field, value, message):
+    folder = export_scene(scene, tmp_path, "mjolnir")
+    side = folder / "mapless.json"
+    side.write_text(json.dumps({**json.loads(side.read_text()), field: value}))
+    with pytest.raises(OfflineFormatError, match=r"mapless\.json") as error:
+        load_offline_scene(folder)
+    assert message in str(error.value)
+    assert message in error_of(["interop", "check", str(folder)], capsys)
+
+
+# ----------------------------------------------------------------------------------- scene cache
+
+
+def test_cache_dir_and_the_variable_name_one_cache_root(tmp_path, monkeypatch):
+    monkeypatch.setenv("MAPLESS_CACHE", str(tmp_path))
+    by_variable = cache.cache_path(SCENE, FAST)
+    assert by_variable == cache.cache_path(SCENE, FAST, tmp_path)
+    assert by_variable.parent.parent == tmp_path / "scenes"
+    monkeypatch.setenv("MAPLESS_CACHE", "")  # set but empty: the default, not the working directory
+    assert cache.cache_path(SCENE, FAST).is_absolute()
+
+
+def test_an_unwritable_cache_keeps_the_built_scene_in_memory(tmp_path, monkeypatch):
+    def read_only(src, dst):
+        raise PermissionError(errno.EACCES, "Permission denied", str(dst))
+
+    monkeypatch.setattr("mapless.files.os.replace", read_only)
+    with pytest.warns(
+        UserWarning, match="cannot write the scene cache file .*Permission denied.*kept in memory"
+    ):
+        data = cache.load_or_build(SCENE, FAST, tmp_path)
+    assert data.scene == SCENE and data.n_poses > 0
+    assert not cache.cache_path(SCENE, FAST, tmp_path).exists()
+
+
+def test_scenes_build_refuses_an_unwritable_cache_before_building(tmp_path, monkeypatch, capsys):
+    root = tmp_path / "root"
+    root.write_text("a file where the cache root should be")
+    monkeypatch.setattr(cache, "build_scene_data", lambda *a: pytest.fail("built before checking"))
+    err = error_of(["scenes", "build", SCENE, "--cache-dir", str(root), "--workers", "1", *FAST_ARGS], capsys)
+    assert "is not writable" in err and "--cache-dir" in err
+    # Training and evaluation only prepare the cache: they go on, building in memory when used.
+    with pytest.warns(UserWarning, match="is not writable"):
+        assert cache.build_many([SCENE], FAST, root, missing_only=True, progress=False) == []
+
+
+def test_a_folder_where_the_cache_file_should_be(tmp_path, capsys):
+    path = cache.cache_path(SCENE, FAST, tmp_path)
+    path.mkdir(parents=True)
+    with pytest.warns(UserWarning, match="cannot write the scene cache file .*kept in memory"):
+        assert cache.load_or_build(SCENE, FAST, tmp_path).scene == SCENE
+    err = error_of(
+        ["scenes", "build", SCENE, "--cache-dir", str(tmp_path), "--workers", "1", *FAST_ARGS], capsys
+    )
+    assert "cannot write the scene cache file" in err and str(path) in err
+
+
+def test_the_cache_folder_deleted_during_a_build(tmp_path, monkeypatch):
+    build = cache.build_scene_data
+    folder = cache.cache_path(SCENE, FAST, tmp_path).parent
+
+    def build_then_delete(*args):
+        data = build(*args)
+        shutil.rmtree(tmp_path / "scenes")  # e.g. a user clearing the cache meanwhile
+        return data
+
+    folder.mkdir(parents=True)
+    monkeypatch.setattr(cache, "build_scene_data", build_then_delete)
+    data = cache.load_or_build(SCENE, FAST, tmp_path)
+    monkeypatch.undo()
+    assert cache.load(folder / f"{SCENE}.npz", FAST).n_poses == data.n_poses  # written all the same
