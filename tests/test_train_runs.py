@@ -18,7 +18,7 @@ from train_fixtures import fixture_library, tiny_config
 from mapless import checkpoint as ckpt
 from mapless.agent.precision import KERNEL_CACHE_CAPACITY
 from mapless.cli import main as cli_main
-from mapless.config import ConfigError, load_config
+from mapless.config import ConfigError, from_dict, load_config
 from mapless.train.common import clip_gradients, configure_torch, new_model
 from mapless.train.config import TrainConfig
 from mapless.train.run import resume_config, train
@@ -82,7 +82,7 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
 
     # What evaluation loads: model + config, weights_only under the hood.
     model, loaded_config, counters = ckpt.load_model(straight)
-    assert loaded_config.model == config.model and counters["episodes"] == 16
+    assert from_dict(TrainConfig, loaded_config) == config and counters["episodes"] == 16
     assert not model.training
     for key, value in model.state_dict().items():
         assert torch.equal(value, a["model"][key])

@@ -95,7 +95,7 @@ def train(
     with contextlib.ExitStack() as stack:
         stack.callback(dist.shutdown, ctx)
         run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
-        if resume is not None and ckpt.config_of(resume).model != config.model:
+        if resume is not None and ckpt.model_config_of(resume) != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
