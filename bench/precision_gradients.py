@@ -22,7 +22,7 @@ import torch
 from mapless.agent.acting import observation_keys
 from mapless.checkpoint import load_model
 from mapless.config import from_dict
-from mapless.train.common import BuiltinLibrary, training_env, training_sampler
+from mapless.train.builders import BuiltinLibrary, training_env, training_sampler
 from mapless.train.config import TrainConfig
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 

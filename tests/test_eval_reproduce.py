@@ -132,7 +132,7 @@ def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resume
     workspace, monkeypatch, capsys
 ):
     from mapless.checkpoint import CHECKPOINT_FILE, FINAL_MODEL_FILE
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     root, config = workspace
     # Runs and reports of its own: the module's other tests leave finished runs to reuse.

@@ -19,9 +19,11 @@ from mapless import checkpoint as ckpt
 from mapless.agent.precision import KERNEL_CACHE_CAPACITY
 from mapless.cli import main as cli_main
 from mapless.config import ConfigError, from_dict, load_config
-from mapless.train.common import clip_gradients, configure_torch, new_model
+from mapless.train.builders import new_model
 from mapless.train.config import TrainConfig
+from mapless.train.gradients import clip_gradients
 from mapless.train.run import resume_config, train
+from mapless.train.runtime import configure_torch
 
 
 def _state(run_dir: Path) -> dict:
@@ -137,7 +139,7 @@ def test_ctrl_c_checkpoints_but_adds_no_snapshot_off_the_schedule(
 ) -> None:
     """Selection picks among the snapshots, so a run stopped and resumed must offer the ones a
     straight run offers: a stop writes one only where its update crossed the schedule."""
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     enter = GracefulStop.__enter__
 
@@ -307,7 +309,7 @@ def test_resume_refuses_settings_the_checkpoint_depends_on(tmp_path: Path, overr
 
 
 def test_sigterm_takes_the_graceful_path_of_ctrl_c() -> None:
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     with GracefulStop() as stop:
         os.kill(os.getpid(), signal.SIGTERM)

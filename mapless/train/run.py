@@ -13,7 +13,7 @@ from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.errors import MaplessError
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
-from mapless.train.common import LibraryFactory, prepare_scenes
+from mapless.train.builders import LibraryFactory, prepare_scenes
 from mapless.train.config import TrainConfig
 from mapless.train.hogwild import AsyncTrainer
 from mapless.train.ppo import PPOTrainer
