@@ -25,8 +25,9 @@ def random_success(config, episodes: int) -> tuple[float, float]:
 
     from mapless.agent.acting import observation_keys
     from mapless.models import build_model
-    from mapless.train.common import BuiltinLibrary, seed_for, training_env, training_sampler
+    from mapless.train.builders import BuiltinLibrary, training_env, training_sampler
     from mapless.train.rollout import make_actor, run_batch
+    from mapless.train.runtime import seed_for
 
     library = BuiltinLibrary(config)()
     batch = 64

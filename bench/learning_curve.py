@@ -84,7 +84,7 @@ def train_and_evaluate(job: tuple[str, list[str], float, float, int]) -> dict:
 
     torch.set_num_threads(1)
     from mapless.train.batched import BatchedTrainer
-    from mapless.train.common import BuiltinLibrary, prepare_scenes
+    from mapless.train.builders import BuiltinLibrary, prepare_scenes
     from mapless.train.ppo import PPOTrainer
 
     run, overrides, minutes, eval_every, val_episodes = job

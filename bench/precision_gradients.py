@@ -21,7 +21,9 @@ import torch
 
 from mapless.agent.acting import observation_keys
 from mapless.checkpoint import load_model
-from mapless.train.common import BuiltinLibrary, training_env, training_sampler
+from mapless.config import from_dict
+from mapless.train.builders import BuiltinLibrary, training_env, training_sampler
+from mapless.train.config import TrainConfig
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 
 
@@ -33,7 +35,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    model, config, counters = load_model(args.snapshot)
+    model, config_data, counters = load_model(args.snapshot)
+    config = from_dict(TrainConfig, config_data)
     model.train()
     scenes = config.env.scene_list()
     library = BuiltinLibrary(config)()  # the run's own scenes and simulator settings

@@ -13,6 +13,11 @@ A run folder holds::
 Every file is written to a temporary name in the same folder and renamed over the target, so a
 killed trainer leaves either the previous or the new file, never a torn one. Files contain only
 tensors, numbers, strings, lists and dicts and are read with ``torch.load(weights_only=True)``.
+
+The run's config is stored as plain data: the trainers write their
+:class:`~mapless.train.config.TrainConfig`, and this module, which evaluation imports, reads back
+only the :class:`~mapless.models.ModelConfig` it builds the model from (:func:`model_config_of`);
+whoever wants the whole config names its type (:func:`config_of`), so nothing here imports train/.
 """
 
 from __future__ import annotations
@@ -21,15 +26,16 @@ import hashlib
 import re
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
 from mapless.config import from_dict, to_dict
 from mapless.errors import MaplessError
 from mapless.files import replacing
-from mapless.models import NavModel, build_model
-from mapless.train.config import TrainConfig
+from mapless.models import ModelConfig, NavModel, build_model
+
+C = TypeVar("C")
 
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -124,9 +130,9 @@ def _malformed(payload: dict) -> str | None:
     return None
 
 
-def model_payload(weights: dict[str, torch.Tensor], config: TrainConfig, counters: dict[str, int]) -> dict:
-    """What evaluation needs: weights (a CPU state dict), the config that builds the model, and how
-    far training got."""
+def model_payload(weights: dict[str, torch.Tensor], config: Any, counters: dict[str, int]) -> dict:
+    """What evaluation needs: weights (a CPU state dict), the run's config (a config dataclass whose
+    ``model`` field builds the model), and how far training got."""
     return {
         "format": FORMAT_VERSION,
         "kind": "model",
@@ -140,7 +146,7 @@ def save_run_state(
     run_dir: Path,
     model: NavModel,
     optimizer: torch.optim.Optimizer,
-    config: TrainConfig,
+    config: Any,
     counters: dict[str, int],
     rngs: list,
     world_size: int,
@@ -191,8 +197,15 @@ def _copy(tree: Any) -> Any:
     return tree
 
 
-def config_of(payload: dict) -> TrainConfig:
-    return from_dict(TrainConfig, payload["config"])
+def config_of(payload: dict, config_type: type[C]) -> C:
+    """The run's config of a checkpoint or model file, as ``config_type`` (the trainers write a
+    :class:`~mapless.train.config.TrainConfig`)."""
+    return from_dict(config_type, payload["config"])
+
+
+def model_config_of(payload: dict) -> ModelConfig:
+    """The :class:`ModelConfig` of a checkpoint or model file (the ``model`` entry of its config)."""
+    return from_dict(ModelConfig, payload["config"]["model"], prefix="model.")
 
 
 def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
@@ -227,19 +240,19 @@ def resolve_model_file(path: str | Path) -> Path:
 
 def load_model(
     path: str | Path, device: str | torch.device = "cpu"
-) -> tuple[NavModel, TrainConfig, dict[str, int]]:
+) -> tuple[NavModel, dict[str, Any], dict[str, int]]:
     """Build the model of a run folder, model snapshot or resumable checkpoint and load its weights.
 
-    Returns ``(model in eval mode on device, the run's TrainConfig, counters)``; ``config.model`` is the
-    :class:`~mapless.models.ModelConfig` (inner learning rate and steps for adaptive models included).
+    Returns ``(model in eval mode on device, the run's config as plain data, counters)``; the model is
+    built from the config's ``model`` entry (inner learning rate and steps for adaptive models
+    included), and ``from_dict(TrainConfig, config)`` types the rest.
     """
     file = resolve_model_file(path)
     payload = load_file(file, map_location=device)
-    config = config_of(payload)
-    model = build_model(config.model)
+    model = build_model(model_config_of(payload))
     try:
         model.load_state_dict(payload["model"])
     except RuntimeError as error:  # missing or unexpected keys, other shapes
         reason = str(error).splitlines()[0]
         raise CheckpointError(f"{file}: its weights do not fit the model of its config ({reason})") from None
-    return model.to(device).eval(), config, dict(payload.get("counters", {}))
+    return model.to(device).eval(), payload["config"], dict(payload.get("counters", {}))

@@ -11,7 +11,14 @@ from train_fixtures import fixture_library, tiny_config
 
 from mapless.evaluate.runner import EvalSettings, ModelAgent, run_episodes
 from mapless.models import registry
-from mapless.models.base import NUM_ACTIONS, RecurrentNavModel, init_heads_and_lstm, target_row
+from mapless.models.base import (
+    NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
+    RecurrentNavModel,
+    init_heads_and_lstm,
+    target_row,
+)
+from mapless.models.roles import ParameterRoles
 from mapless.train.ppo import PPOTrainer
 
 
@@ -19,6 +26,7 @@ class TargetRowModel(RecurrentNavModel):
     """Reads only the target's own context row and the previous policy."""
 
     description = "example: the target's context row -> LSTM"
+    parameter_roles = RECURRENT_CORE_ROLES | ParameterRoles(policy=("embed",))
 
     def __init__(self, config, knowledge=None):
         super().__init__(config, knowledge)

@@ -162,7 +162,7 @@ def test_parent_reward_pays_once_per_parent_per_episode(library):
     data = library[SCENE]
     probe = NavEnv(library, [far_episode(library)[0]], rewards=RewardConfig(parent_reward=True))
     probe.reset()
-    weights = probe._parent_weights
+    weights = probe.batched.parent_weights[0]  # the rules, and their state, are the batched env's
     is_parent = weights > 0
     assert is_parent.any()  # the Toaster has parents in kitchens
     in_view = data.context[:, :, 0] > 0
@@ -239,3 +239,13 @@ def test_a_category_set_that_contradicts_the_targets_or_the_scenes_is_refused(li
     env = NavEnv(library, episodes=[episode], targets=all_types)
     with pytest.raises(MaplessError, match="category rows"):
         env.reset(seed=0)
+
+
+def test_an_episode_naming_its_instances_measures_its_optimal_length_to_them(library):
+    data = library[SCENE]
+    episode, pose = far_episode(library)
+    toasters = data.instances_of("Toaster")
+    named = Episode(SCENE, "Toaster", episode.start, target_ids=(data.instance_ids[toasters[-1]],))
+    distances = data.distances_to(data.goal_mask_for_instances(toasters[-1:]))
+    _, info = NavEnv(library, [named]).reset()
+    assert info["optimal_length"] == distances[pose] + 1 >= data.optimal_length(pose, "Toaster")

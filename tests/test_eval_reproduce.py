@@ -132,7 +132,7 @@ def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resume
     workspace, monkeypatch, capsys
 ):
     from mapless.checkpoint import CHECKPOINT_FILE, FINAL_MODEL_FILE
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     root, config = workspace
     # Runs and reports of its own: the module's other tests leave finished runs to reuse.
@@ -221,10 +221,10 @@ def test_reproduce_table2_and_table3(workspace):
     # The unablated model is Table 1's run of the same configuration (trained once for both).
     table1 = load_experiment("table1", "smoke", path=config, overrides=["models=[a3c]"])
     assert Path(run_dirs[0]) == run_dir_for(table1, train_config(table1, "a3c", seed=1), "all")
-    from mapless.checkpoint import config_of, load_file
+    from mapless.checkpoint import load_file, model_config_of
 
-    ablated = config_of(load_file(Path(run_dirs[1]) / "final_model.pt"))
-    assert "kitchen" not in ablated.model.hierarchy_rooms
+    ablated = model_config_of(load_file(Path(run_dirs[1]) / "final_model.pt"))
+    assert "kitchen" not in ablated.hierarchy_rooms
 
 
 def test_eval_cli_oracle_and_run_folder(workspace, capsys):

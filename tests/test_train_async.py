@@ -13,8 +13,9 @@ import torch
 from train_fixtures import fixture_library, tiny_config
 
 from mapless import checkpoint as ckpt
-from mapless.train.common import new_model, seed_for
+from mapless.train.builders import new_model
 from mapless.train.hogwild import AsyncTrainer, WorkerError
+from mapless.train.runtime import seed_for
 
 
 def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:

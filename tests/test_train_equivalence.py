@@ -16,7 +16,8 @@ from train_fixtures import fixture_library, tiny_config
 from mapless.agent.acting import observation_keys
 from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
-from mapless.train.common import new_model, reward_config, target_fields, trainable, training_sampler
+from mapless.train.builders import new_model, reward_config, target_fields, training_sampler
+from mapless.train.gradients import trainable
 from mapless.train.rollout import (
     accumulate_gradients,
     episode_losses,

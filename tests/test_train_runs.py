@@ -18,10 +18,12 @@ from train_fixtures import fixture_library, tiny_config
 from mapless import checkpoint as ckpt
 from mapless.agent.precision import KERNEL_CACHE_CAPACITY
 from mapless.cli import main as cli_main
-from mapless.config import ConfigError, load_config
-from mapless.train.common import clip_gradients, configure_torch, new_model
+from mapless.config import ConfigError, from_dict, load_config
+from mapless.train.builders import new_model
 from mapless.train.config import TrainConfig
+from mapless.train.gradients import clip_gradients
 from mapless.train.run import resume_config, train
+from mapless.train.runtime import configure_torch
 
 
 def _state(run_dir: Path) -> dict:
@@ -82,7 +84,7 @@ def test_run_folder_and_exact_resume(tmp_path: Path) -> None:
 
     # What evaluation loads: model + config, weights_only under the hood.
     model, loaded_config, counters = ckpt.load_model(straight)
-    assert loaded_config.model == config.model and counters["episodes"] == 16
+    assert from_dict(TrainConfig, loaded_config) == config and counters["episodes"] == 16
     assert not model.training
     for key, value in model.state_dict().items():
         assert torch.equal(value, a["model"][key])
@@ -137,7 +139,7 @@ def test_ctrl_c_checkpoints_but_adds_no_snapshot_off_the_schedule(
 ) -> None:
     """Selection picks among the snapshots, so a run stopped and resumed must offer the ones a
     straight run offers: a stop writes one only where its update crossed the schedule."""
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     enter = GracefulStop.__enter__
 
@@ -356,7 +358,7 @@ def test_resume_refuses_settings_the_checkpoint_depends_on(tmp_path: Path, overr
 
 
 def test_sigterm_takes_the_graceful_path_of_ctrl_c() -> None:
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     with GracefulStop() as stop:
         os.kill(os.getpid(), signal.SIGTERM)

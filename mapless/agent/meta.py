@@ -59,10 +59,8 @@ from mapless.agent.precision import encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
 from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 
-#: LSTM matrices whose per-episode updates are kept in low rank during meta-training.
+#: LSTM matrices (of :attr:`RecurrentNavModel.lstm`) whose per-episode updates are kept in low rank.
 LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
-#: Adapted parameters used by the batched recurrent core (not by the vmapped encoder).
-CORE_PREFIXES = ("lstm.", "actor_linear.")
 
 
 @dataclass
@@ -162,9 +160,11 @@ class InnerLoop:
         self.first_order = first_order
         self.meta_train = meta_train
         self.dtype = dtype  # compute dtype of the encoders and θ_0's LSTM products (agent/precision.py)
-        self.names = model.inner_parameter_names()
+        self.names = model.inner_parameter_names()  # from the model's parameter roles
         if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
             raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
+        # Adapted parameters of the batched recurrent core, kept out of the vmapped encoder's call.
+        self._core = set(model.core_parameter_names())
         # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
         self._describe_batched = model.adapts_policy_only
         self._encoder = _Encoder(model, describe=not self._describe_batched)
@@ -220,7 +220,7 @@ class InnerLoop:
             # Test time: the fast weights are updated in place, so an inner step must not reach back
             # into an earlier chunk's graph (it acted with other weights): cut it at chunk starts.
             hidden, prev_policy = (hidden[0].detach(), hidden[1].detach()), prev_policy.detach()
-        encoder_fast = {f"model.{n}": w for n, w in state.fast.items() if not n.startswith(CORE_PREFIXES)}
+        encoder_fast = {f"model.{n}": w for n, w in state.fast.items() if n not in self._core}
 
         def one_episode(fast, episode_obs, h, c, policy):
             single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}

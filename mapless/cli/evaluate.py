@@ -85,9 +85,10 @@ def _eval(args: argparse.Namespace) -> int:
     meta: dict = {"split": args.split}
     if path.exists():
         from mapless.checkpoint import config_of, load_file, resolve_model_file
+        from mapless.train.config import TrainConfig
 
         model_file = resolve_model_file(path)
-        cfg = config_of(load_file(model_file))
+        cfg = config_of(load_file(model_file), TrainConfig)
         library = LibrarySpec.for_env(cfg.env, offline_dir=args.offline_dir)
         target_set = cfg.env.target_set
         settings = EvalSettings(**{**settings.__dict__, "category_set": cfg.model.category_set})

@@ -19,6 +19,7 @@ from mapless.models.base import (
     EMBED,
     GRID,
     NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
     glorot_init,
@@ -27,9 +28,19 @@ from mapless.models.base import (
     tile,
 )
 from mapless.models.dropout import Dropout
-from mapless.models.learned_loss import LearnedLossMixin
+from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
+from mapless.models.roles import ParameterRoles
 
 BASE_EMBEDDING = EMBED * GRID * GRID  # 3136
+
+
+#: The roles of what :class:`SavnEmbeddingMixin` builds, the recurrent core included: the visual and
+#: target embeddings are the encoders, the previous-action embedding and the fusion the policy.
+SAVN_EMBEDDING_ROLES = RECURRENT_CORE_ROLES | ParameterRoles(
+    encoder=("conv1", "embed_glove"),
+    policy=("embed_action", "pointwise"),
+    outer_only=("action_predict_linear",),
+)
 
 
 class SavnEmbeddingMixin:
@@ -66,6 +77,7 @@ class SavnEmbeddingMixin:
 
 class A3CModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "SAVN's non-adaptive A3C (ResNet map + GloVe + previous policy -> LSTM)"
+    parameter_roles = SAVN_EMBEDDING_ROLES
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -81,6 +93,7 @@ class A3CModel(SavnEmbeddingMixin, RecurrentNavModel):
 class SavnModel(LearnedLossMixin, A3CModel):
     description = "SAVN: a3c + learned interaction loss, inner SGD steps at train and test time"
     default_inner_lr = 1e-4  # allenai/savn --inner_lr default
+    parameter_roles = SAVN_EMBEDDING_ROLES | LEARNED_LOSS_ROLES
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
 from mapless.models.memo import InViewMemo
+from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
 
 NUM_ACTIONS = 6
@@ -105,9 +106,9 @@ class NavModel(nn.Module):
     default_inner_lr: ClassVar[float | None] = None
     default_graph: ClassVar[str | None] = None
     default_adapt: ClassVar[str] = "all"
-    #: θ of the paper's eq. 1 (the policy network on top of the state and target encoders), the
-    #: inner step's parameters under ``adapt: policy``.
-    policy_prefixes: ClassVar[tuple[str, ...]] = ("embed_action.", "pointwise.", "lstm.", "actor_linear.")
+    #: What the meta-learning inner loop does with each parameter (:mod:`mapless.models.roles`):
+    #: every trainable parameter in exactly one role, checked by :meth:`parameter_role_map`.
+    parameter_roles: ClassVar[ParameterRoles] = ParameterRoles()
     description: ClassVar[str] = ""
     #: Whether the model's reference training pays MJOLNIR's hierarchical (parent-object) reward
     #: (``env.parent_reward`` None follows it).
@@ -149,32 +150,27 @@ class NavModel(nn.Module):
         """``rows [B, k, H + 6]`` -> interaction loss ``[B]`` (adaptive models only)."""
         raise TypeError(f"model {self.config.name!r} has no learned interaction loss")
 
+    def parameter_role_map(self) -> dict[str, str]:
+        """``{trainable parameter name: role}`` of :attr:`parameter_roles`; raises
+        :class:`~mapless.models.roles.ParameterRoleError` naming any parameter with no role or several
+        (``build_model`` calls it, so a model with one is never built)."""
+        return assign_roles(self, self.parameter_roles)
+
     def learned_loss_parameter_names(self) -> list[str]:
         """φ: the learned-loss parameters (never adapted by the inner step)."""
-        return [n for n, p in self.named_parameters() if p.requires_grad and n.startswith("ll_")]
+        return [n for n, role in self.parameter_role_map().items() if role == LEARNED_LOSS]
 
     def inner_parameter_names(self) -> list[str]:
-        """θ adapted by the inner SGD step: SAVN's rule (every trainable parameter whose name does not
-        contain ``ll``) minus parameters the learned loss cannot reach (critic, dead modules, GVE's
-        graph), which SAVN "adapts" with a None gradient, i.e. leaves unchanged; under
-        ``adapt: policy`` only those of them under :attr:`policy_prefixes`."""
-        unreachable = self._inner_unreachable_prefixes()
-        names = [
-            n
-            for n, p in self.named_parameters()
-            if p.requires_grad and "ll" not in n and not n.startswith(unreachable)
-        ]
-        if self.adapts_policy_only:
-            names = [n for n in names if n.startswith(self.policy_prefixes)]
-        return names
+        """θ adapted by the inner SGD step: the ``policy`` parameters, and under ``adapt: all`` (SAVN's
+        rule) the ``encoder`` ones too. ``outer_only`` parameters (critic, dead modules, GVE's graph)
+        are the ones SAVN "adapts" with a None gradient, i.e. leaves unchanged."""
+        adapted = (POLICY,) if self.adapts_policy_only else (POLICY, ENCODER)
+        return [n for n, role in self.parameter_role_map().items() if role in adapted]
 
     @property
     def adapts_policy_only(self) -> bool:
         """``adapt: policy`` (see :class:`ModelConfig`)."""
         return (self.config.adapt or self.default_adapt) == "policy"
-
-    def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
-        return ("critic_linear.", "action_predict_linear.")
 
     def graph_name(self) -> str:
         return self.config.graph or str(self.default_graph)
@@ -212,6 +208,10 @@ class NavModel(nn.Module):
         return compute() if memo is None else memo.constant(key, compute)
 
 
+#: The roles of :class:`RecurrentNavModel`'s own modules; subclasses add theirs with ``|``.
+RECURRENT_CORE_ROLES = ParameterRoles(policy=("lstm", "actor_linear"), outer_only=("critic_linear",))
+
+
 class RecurrentNavModel(NavModel, abc.ABC):
     """A model of the form encoder -> ``LSTMCell`` (``self.lstm``) -> actor/critic heads on h.
 
@@ -221,10 +221,21 @@ class RecurrentNavModel(NavModel, abc.ABC):
     updates (:mod:`mapless.agent.meta`).
     """
 
+    parameter_roles = RECURRENT_CORE_ROLES
+
+    def core_parameter_names(self) -> list[str]:
+        """The parameters of the recurrent core after :meth:`encode` (the LSTM and the actor), which
+        the inner loop runs batched rather than per episode."""
+        core = [
+            *self.lstm.named_parameters(prefix="lstm"),
+            *self.actor_linear.named_parameters(prefix="actor_linear"),
+        ]
+        return [name for name, _ in core]
+
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
         """The observation-only encoders (the paper's φ(s_t; v) and ψ(g; u)): descriptors that depend
-        on neither the recurrent state nor the previous policy, computed with parameters outside
-        :attr:`policy_prefixes`. Under ``adapt: policy`` the inner loop runs it once for the whole
+        on neither the recurrent state nor the previous policy, computed with ``encoder`` parameters
+        only (:attr:`NavModel.parameter_roles`). Under ``adapt: policy`` the inner loop runs it once for the whole
         batch, outside the per-episode ``vmap``. The default passes the observation through."""
         return obs
 

@@ -29,6 +29,7 @@ from mapless.knowledge import Knowledge
 from mapless.models.base import (
     EMBED,
     NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
     context_vector,
@@ -43,7 +44,8 @@ from mapless.models.base import (
     target_row,
 )
 from mapless.models.dropout import Dropout
-from mapless.models.learned_loss import LearnedLossMixin
+from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
+from mapless.models.roles import ParameterRoles
 
 
 class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
@@ -55,6 +57,14 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     default_inner_lr = 1e-3  # the paper: "an inner learning rate of 0.001"
     # The paper's meta-objective (eq. 3) adapts θ of a_t ~ π(φ(s_t; v), ψ(g; u); θ), not the encoders.
     default_adapt = "policy"
+    parameter_roles = (
+        RECURRENT_CORE_ROLES
+        | LEARNED_LOSS_ROLES
+        | ParameterRoles(
+            encoder=("context_embed", "A", "W0", "W1", "W2", "embed_glove", "embed_target_context"),
+            policy=("embed_action", "pointwise"),
+        )
+    )
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

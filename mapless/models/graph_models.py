@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
-from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
+from mapless.models.a3c import BASE_EMBEDDING, SAVN_EMBEDDING_ROLES, SavnEmbeddingMixin
 from mapless.models.base import (
     ModelConfig,
     RecurrentNavModel,
@@ -25,7 +25,8 @@ from mapless.models.base import (
     shared_gcn_term,
     shared_row_gcn_layer,
 )
-from mapless.models.learned_loss import LearnedLossMixin
+from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
+from mapless.models.roles import ParameterRoles
 
 GRAPH_EMBEDDING = 512
 
@@ -62,6 +63,7 @@ class ScenePriorsGraph(nn.Module):
 class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "Scene Priors: a3c embedding || GCN graph embedding -> LSTM(3648)"
     default_graph = "vg"
+    parameter_roles = SAVN_EMBEDDING_ROLES | ParameterRoles(encoder=("graph",))
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -88,6 +90,8 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "GVE: SAVN actor; critic on [h || graph embedding]; SAVN inner loop"
     default_graph = "vg"
     default_inner_lr = 1e-4
+    # The graph feeds only the critic, so the learned loss cannot reach it.
+    parameter_roles = SAVN_EMBEDDING_ROLES | LEARNED_LOSS_ROLES | ParameterRoles(outer_only=("gve",))
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -100,9 +104,6 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
         self.critic_linear = nn.Linear(self.hidden_size + GRAPH_EMBEDDING, 1)
         normalized_column_init(self.critic_linear, 1.0)
         self._build_learned_loss(with_key_linear=True)
-
-    def _inner_unreachable_prefixes(self) -> tuple[str, ...]:
-        return (*super()._inner_unreachable_prefixes(), "gve.")
 
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor

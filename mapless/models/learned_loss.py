@@ -2,14 +2,19 @@
 ``[h_t || π_t]``. As in SAVN the k time steps are the Conv1d *input channels* and the H+6 features are
 the sequence axis; block 0 maps k -> 10 channels (kernel 2, dilation 1), block 1 maps 10 -> 1
 (kernel 2, dilation 2), each causally chomped and followed by LeakyReLU(0.01). The loss is the L2
-norm of the resulting (H+6)-vector. All parameter names start with ``ll_`` so that SAVN's rule keeps
-them out of the inner step."""
+norm of the resulting (H+6)-vector. The parameter names start with ``ll_`` as in SAVN (so checkpoints
+keep its keys); what keeps them out of the inner step is their role, :data:`LEARNED_LOSS_ROLES`."""
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from mapless.models.roles import ParameterRoles
+
+#: The roles of what :class:`LearnedLossMixin` builds: φ, never adapted by the inner step.
+LEARNED_LOSS_ROLES = ParameterRoles(learned_loss=("ll_tc", "ll_key", "ll_linear"))
 
 
 class TemporalBlock(nn.Module):

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
-from mapless.models.a3c import BASE_EMBEDDING, SavnEmbeddingMixin
+from mapless.models.a3c import BASE_EMBEDDING, SAVN_EMBEDDING_ROLES, SavnEmbeddingMixin
 from mapless.models.base import (
     NUM_ACTIONS,
     ModelConfig,
@@ -26,8 +26,13 @@ from mapless.models.base import (
     shared_gcn_term,
     shared_row_gcn_layer,
 )
+from mapless.models.roles import ParameterRoles
 
 GCN_EMBEDDING = 512
+
+
+#: The roles of what :class:`ObjectGcnMixin` builds: an observation encoder.
+OBJECT_GCN_ROLES = ParameterRoles(encoder=("A", "W0", "W1", "W2", "W3", "final_mapping"))
 
 
 class ObjectGcnMixin:
@@ -59,6 +64,7 @@ class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_O: context matrix + object GCN + previous policy -> LSTM(5C + 522)"
     trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
+    parameter_roles = SAVN_EMBEDDING_ROLES | OBJECT_GCN_ROLES
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -78,6 +84,7 @@ class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     description = "MJOLNIR_R: SAVN embedding || object GCN -> LSTM(3648)"
     trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
+    parameter_roles = SAVN_EMBEDDING_ROLES | OBJECT_GCN_ROLES  # the frozen resnet18 needs no role
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

@@ -16,18 +16,21 @@ from torch import Tensor, nn
 from mapless.knowledge import Knowledge
 from mapless.models.base import (
     NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
     init_heads_and_lstm,
     target_row,
     target_similarity,
 )
+from mapless.models.roles import ParameterRoles
 
 WIDTH = 256
 
 
 class MlpModel(RecurrentNavModel):
     description = "sanity baseline: MLP over the context rows + target row + GloVe cosines -> LSTM"
+    parameter_roles = RECURRENT_CORE_ROLES | ParameterRoles(encoder=("layer1", "layer2"))
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

@@ -35,14 +35,17 @@ def model_names() -> list[str]:
 
 def build_model(config: ModelConfig | str, knowledge: Knowledge | None = None, **overrides) -> NavModel:
     """Construct a registered model. ``config`` may be a name; ``overrides`` replace config fields.
-    ``knowledge`` defaults to the packaged data of ``config.category_set``."""
+    ``knowledge`` defaults to the packaged data of ``config.category_set``. Raises
+    :class:`~mapless.models.roles.ParameterRoleError` if a trainable parameter has no role or several."""
     if isinstance(config, str):
         config = ModelConfig(name=config)
     if overrides:
         config = dataclasses.replace(config, **overrides)
     if config.name not in MODELS:
         raise UnknownNameError("model", config.name, MODELS)
-    return MODELS[config.name](config, knowledge)
+    model = MODELS[config.name](config, knowledge)
+    model.parameter_role_map()  # fails here, naming the parameter, rather than in a training run
+    return model
 
 
 def count_parameters(model: NavModel) -> tuple[int, int]:

@@ -19,6 +19,7 @@ from mapless.models.base import (
     EMBED,
     GRID,
     NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
     glorot_init,
@@ -27,12 +28,20 @@ from mapless.models.base import (
     unit,
 )
 from mapless.models.dropout import Dropout
-from mapless.models.learned_loss import LearnedLossMixin
+from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
+from mapless.models.roles import ParameterRoles
 
 
 class SpattModel(LearnedLossMixin, RecurrentNavModel):
     description = "SpAtt: target/memory/action spatial attention over the 7x7 map; SAVN inner loop"
     default_inner_lr = 0.01  # barmayo/spatial_attention --inner_lr default (SAVN's is 1e-4)
+    parameter_roles = (
+        RECURRENT_CORE_ROLES
+        | LEARNED_LOSS_ROLES
+        | ParameterRoles(
+            encoder=("embed_state", "embed_glove", "embed_memory", "memory_alpha"), policy=("embed_action",)
+        )
+    )
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

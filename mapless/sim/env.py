@@ -11,6 +11,10 @@ Actions: Discrete(6) = MoveAhead, RotateLeft, RotateRight, LookUp, LookDown, Don
 terminates on ``Done`` (success iff a target instance is visible) and is truncated at the step
 limit. ``info`` carries ``success``, ``optimal_length``, ``visited`` (pose ids so far),
 ``failed_action`` and ``pose`` (pose id; ``env.data.key(pose)`` gives the SAVN pose key).
+
+The task rules live in one place, :class:`~mapless.sim.vector.BatchedNavEnv`: this class is a thin
+adapter that plays slot 0 of a batched environment of size 1 over the current episode's scene, and
+adds only what gymnasium asks for (episode selection, the spaces, per-step tuples).
 """
 
 from __future__ import annotations
@@ -22,19 +26,14 @@ import numpy as np
 from gymnasium import spaces
 
 from mapless.errors import MaplessError
-from mapless.knowledge.parents import parent_reward
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import ACTIONS, DONE
-from mapless.sim.task import (
-    RewardConfig,
-    TargetFields,
-    check_scene_categories,
-    max_steps_for,
-    resolve_target_fields,
-)
+from mapless.sim.scene_data import ACTIONS, SceneData
+from mapless.sim.task import RewardConfig, TargetFields, resolve_target_fields
+from mapless.sim.vector import BatchedNavEnv
 
 ENV_ID = "mapless/ObjectNav-v0"
+OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index")
 
 
 class NavEnv(gym.Env):
@@ -71,11 +70,37 @@ class NavEnv(gym.Env):
             }
         )
         self._next_fixed = 0
-        self._scene_name: str | None = None
-        self._features: np.ndarray | None = None
-        self._goal_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        #: the batched environment of the current episode's scene (rebuilt when the scene changes)
+        self.batched: BatchedNavEnv | None = None
+        self.visited: list[int] = []
 
-    # -- episode bookkeeping -------------------------------------------------------------------
+    # -- the current episode, read from the batched environment's slot 0 ------------------------
+    @property
+    def episode(self) -> Episode:
+        return self.batched.episodes[0]
+
+    @property
+    def data(self) -> SceneData:
+        return self.library[self.episode.scene]
+
+    @property
+    def pose(self) -> int:
+        """The pose id within the episode's scene."""
+        return int(self.batched.pose[0] - self.batched.scene_offset[self.episode.scene])
+
+    @property
+    def steps(self) -> int:
+        return int(self.batched.steps[0])
+
+    @property
+    def max_steps(self) -> int:
+        return int(self.batched.max_steps[0])
+
+    @property
+    def optimal_length(self) -> int:
+        return int(self.batched.optimal_length[0])
+
+    # -- gymnasium API ---------------------------------------------------------------------------
     def _select_episode(self, options: dict | None) -> Episode:
         if options and "episode" in options:
             return options["episode"]
@@ -85,53 +110,34 @@ class NavEnv(gym.Env):
             return episode
         return self.sampler.sample(self.np_random)
 
-    def _load_scene(self, scene: str) -> None:
-        if scene != self._scene_name:
-            self.data = self.library[scene]
-            check_scene_categories(self.data, self.targets)
-            # One float32 copy per scene keeps each step a view, not a conversion.
-            self._features = self.data.features.astype(np.float32) * np.float32(self.data.feature_scale)
-            self._context = self.data.context
-            self._successors = self.data.successors
-            self._scene_name = scene
-
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         episode = self._select_episode(options)
-        self.library.check_target(episode.scene, episode.target)
-        self._load_scene(episode.scene)
-        self.episode = episode
-        self.pose = self.library.pose_of(episode.scene, episode.start)
-        self._goal, distances = self._goal_and_distances(episode)
-        self._target_embedding = self.targets.embedding(episode.target)
-        self._target_index = np.array(self.targets.index(episode.target), dtype=np.int64)
-        self._parent_weights = self.targets.parent_weights(self.data.room_type, episode.target)
-        self._pays_parents = self.rewards.pays_parent_reward(self.data.room_type)
-        self._seen_parents = np.zeros_like(self._parent_weights, dtype=bool)
-        self.max_steps = self.fixed_max_steps or max_steps_for(self.data.room_type, self.mode)
-        self.steps = 0
+        if self.batched is None or episode.scene not in self.batched.scene_offset:
+            self.batched = BatchedNavEnv(
+                self.library,
+                [episode.scene],
+                1,
+                targets=self.targets,
+                rewards=self.rewards,
+                mode=self.mode,
+                max_steps=self.fixed_max_steps,
+            )
+        self.batched.reset([0], [episode])
         self.visited = [self.pose]
-        self.optimal_length = episode.optimal_length
-        if self.optimal_length < 0:
-            d = int(distances[self.pose])
-            self.optimal_length = d + 1 if d >= 0 else -1
         return self._observation(), self._info(success=False, failed=False)
 
-    def _goal_and_distances(self, episode: Episode) -> tuple[np.ndarray, np.ndarray]:
-        key = (episode.scene, episode.target, episode.target_ids)
-        if key not in self._goal_cache:
-            instances = self.data.goal_instances(episode.target, episode.target_ids)
-            goal = self.data.goal_mask_for_instances(instances)
-            self._goal_cache[key] = (goal, self.data.distances_to(goal))
-        return self._goal_cache[key]
+    def step(self, action: int):
+        result = self.batched.step(np.array([int(action)]))
+        terminated = bool(result.terminated[0])
+        if not terminated:
+            self.visited.append(self.pose)
+        info = self._info(success=bool(result.success[0]), failed=bool(result.failed_action[0]))
+        return self._observation(), float(result.reward[0]), terminated, bool(result.truncated[0]), info
 
     def _observation(self) -> dict:
-        return {
-            "context": self._context[self.pose],
-            "features": self._features[self.pose],
-            "target_embedding": self._target_embedding,
-            "target_index": self._target_index,
-        }
+        # [0, ...] keeps a 0-d array (not a numpy scalar) for target_index, as its space says.
+        return {key: value[0, ...] for key, value in self.batched.observe(OBSERVATION_KEYS).items()}
 
     def _info(self, success: bool, failed: bool) -> dict:
         return {
@@ -142,31 +148,6 @@ class NavEnv(gym.Env):
             "pose": self.pose,
             "episode": self.episode,
         }
-
-    def step(self, action: int):
-        action = int(action)
-        self.steps += 1
-        reward = self.rewards.step_penalty
-        success = failed = False
-        if action == DONE:
-            success = bool(self._goal[self.pose])
-            if success:
-                reward = self.rewards.success_reward
-            terminated = True
-        else:
-            nxt = int(self._successors[self.pose, action])
-            failed = nxt == self.pose
-            self.pose = nxt
-            self.visited.append(nxt)
-            terminated = False
-            if self._pays_parents:
-                bonus, self._seen_parents = parent_reward(
-                    self._context[nxt, :, 0] > 0, self._parent_weights, self._seen_parents
-                )
-                if bonus > 0:
-                    reward = float(bonus)
-        truncated = not terminated and self.steps >= self.max_steps
-        return self._observation(), reward, terminated, truncated, self._info(success, failed)
 
 
 gym.register(id=ENV_ID, entry_point="mapless.sim.env:NavEnv")

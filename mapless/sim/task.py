@@ -1,5 +1,5 @@
-"""The ObjectNav task rules shared by the single and the batched environment: rewards, limits,
-and how a target is turned into observation fields."""
+"""The ObjectNav task's settings, read by the batched environment (which the gymnasium one
+adapts): rewards, limits, and how a target is turned into observation fields."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""Batched environment: many ObjectNav episodes stepped at once with numpy.
+"""Batched environment: many ObjectNav episodes stepped at once with numpy. It is the one
+implementation of the task's step rules (reward, parent bonus, success, truncation); the gymnasium
+:class:`~mapless.sim.env.NavEnv` plays a batch of one.
 
 All scenes given at construction are concatenated into global pose-indexed arrays, so a step of
 ``B`` episodes in any mix of scenes is a handful of vectorised gathers. Observations are gathered
@@ -129,11 +131,20 @@ class BatchedNavEnv:
             self.seen_parents[slot] = False
             optimal = episode.optimal_length
             if optimal < 0:
-                d = int(data.target_distances(episode.target)[local]) if not episode.target_ids else -1
+                d = int(self._distances_to_goal(episode)[local])
                 optimal = d + 1 if d >= 0 else -1
             self.optimal_length[slot] = optimal
             self._distances[slot] = None if episode.target_ids else data.target_distances(episode.target)
             self.episodes[slot] = episode
+
+    def _distances_to_goal(self, episode: Episode) -> np.ndarray:
+        """Moves from every pose of the episode's scene to the nearest pose that sees one of its goal
+        instances (the named ones if it names any)."""
+        data = self.library[episode.scene]
+        if not episode.target_ids:
+            return data.target_distances(episode.target)
+        instances = data.goal_instances(episode.target, episode.target_ids)
+        return data.distances_to(data.goal_mask_for_instances(instances))
 
     def expert_actions(self) -> np.ndarray:
         """The shortest-path expert's action in every slot (-1 where none is known or the episode is

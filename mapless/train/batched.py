@@ -23,25 +23,13 @@ import torch
 from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
 from mapless.train import distributed as dist
-from mapless.train.common import (
-    BuiltinLibrary,
-    GracefulStop,
-    LibraryFactory,
-    check_finite,
-    clip_gradients,
-    configure_torch,
-    fill_missing_gradients,
-    new_model,
-    run_summary,
-    seed_for,
-    trainable,
-    training_env,
-    training_sampler,
-)
+from mapless.train.builders import BuiltinLibrary, LibraryFactory, new_model, training_env, training_sampler
 from mapless.train.config import TrainConfig
-from mapless.train.monitor import RunMonitor
+from mapless.train.gradients import check_finite, clip_gradients, fill_missing_gradients, trainable
+from mapless.train.monitor import RunMonitor, run_summary
 from mapless.train.optim import SharedAdam
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
+from mapless.train.runtime import GracefulStop, configure_torch, seed_for
 
 #: Rows of the per-episode statistics exchanged between ranks.
 _EPISODE_ROWS = ("success", "spl", "length", "reward")

@@ -37,25 +37,20 @@ from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
-from mapless.train.common import (
+from mapless.train.builders import (
     BuiltinLibrary,
-    GracefulStop,
     LibraryFactory,
-    clip_gradients,
-    configure_torch,
-    fill_missing_gradients,
     new_model,
     reward_config,
-    run_summary,
-    seed_for,
     target_fields,
-    trainable,
     training_sampler,
 )
 from mapless.train.config import TrainConfig
-from mapless.train.monitor import RunMonitor
+from mapless.train.gradients import clip_gradients, fill_missing_gradients, trainable
+from mapless.train.monitor import RunMonitor, run_summary
 from mapless.train.optim import SharedAdam
 from mapless.train.rollout import accumulate_gradients, make_actor, run_episode
+from mapless.train.runtime import GracefulStop, configure_torch, seed_for
 
 POLL_SECONDS = 0.2
 JOIN_SECONDS = 10.0

@@ -1,4 +1,5 @@
-"""Training metrics: TensorBoard scalars, ``metrics.jsonl`` and the tqdm progress bar.
+"""Training metrics: TensorBoard scalars, ``metrics.jsonl``, the tqdm progress bar and the summary a
+trainer's run returns (:func:`run_summary`).
 
 Logged every ``log_every`` episodes, as means over the episodes finished since the last record
 (x axis: training episodes). Keys:
@@ -225,3 +226,27 @@ def _records_up_to(path: Path, episodes: int) -> list[str]:
         if record["episodes"] <= episodes:
             kept.append(line + "\n")
     return kept
+
+
+def run_summary(
+    counters: dict[str, int],
+    start: float,
+    start_frames: int,
+    first: tuple[float, int] | None,
+    end: float,
+    running_success: float,
+    stopped: bool,
+) -> dict[str, float]:
+    """What a trainer's ``run`` returns: its counters, the wall time, frames/s over the whole run and
+    from ``first`` (time and frames after the first update, allocation warm-up excluded) to ``end``
+    (the loop's end, before the final checkpoint), the running success rate and whether Ctrl-C
+    stopped it early."""
+    steady = (counters["frames"] - first[1]) / max(end - first[0], 1e-9) if first else 0.0
+    return {
+        **{k: float(v) for k, v in counters.items()},
+        "seconds": time.perf_counter() - start,
+        "frames_per_s": (counters["frames"] - start_frames) / max(end - start, 1e-9),
+        "steady_frames_per_s": steady,
+        "running_success": running_success,
+        "stopped_early": float(stopped),
+    }

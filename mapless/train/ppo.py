@@ -41,17 +41,11 @@ from mapless.agent.sequence import replay_segment
 from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
-from mapless.train.common import (
-    check_finite,
-    configure_torch,
-    new_model,
-    seed_for,
-    trainable,
-    training_env,
-    training_sampler,
-)
+from mapless.train.builders import new_model, training_env, training_sampler
+from mapless.train.gradients import check_finite, trainable
 from mapless.train.monitor import RunMonitor
 from mapless.train.ppo_loss import PPOLoss, gae, ppo_loss
+from mapless.train.runtime import configure_torch, seed_for
 from mapless.train.segments import Segment, SegmentCollector
 
 _EPISODE_ROWS = ("success", "spl", "length", "reward")

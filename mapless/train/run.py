@@ -14,7 +14,7 @@ from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.errors import MaplessError
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
-from mapless.train.common import LibraryFactory, prepare_scenes
+from mapless.train.builders import LibraryFactory, prepare_scenes
 from mapless.train.config import TrainConfig
 from mapless.train.hogwild import AsyncTrainer
 from mapless.train.ppo import PPOTrainer
@@ -112,7 +112,7 @@ def train(
     with contextlib.ExitStack() as stack:
         stack.callback(dist.shutdown, ctx)
         run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
-        if resume is not None and ckpt.config_of(resume).model != config.model:
+        if resume is not None and ckpt.model_config_of(resume) != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
             if not run_dir.exists():

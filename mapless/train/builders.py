@@ -1,0 +1,75 @@
+"""How a run's config becomes the objects of training: scene library, targets, rewards, episode
+sampler, batched environment and model (the same for every trainer)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from mapless.episodes.sampler import TrainingSampler
+from mapless.models import NavModel, build_model
+from mapless.offline import offline_library
+from mapless.sim.library import SceneLibrary
+from mapless.sim.task import RewardConfig, TargetFields
+from mapless.sim.vector import BatchedNavEnv
+from mapless.train.config import TrainConfig
+
+#: Builds the scene library in the process that needs it (async workers build their own).
+LibraryFactory = Callable[[], SceneLibrary]
+
+
+@dataclass(frozen=True)
+class BuiltinLibrary:
+    """Picklable factory of the run's scenes: the cached built-in ones, or an offline data root."""
+
+    config: TrainConfig
+
+    def __call__(self) -> SceneLibrary:
+        env = self.config.env
+        if env.offline_dir:
+            return offline_library(env.offline_dir, env.sim.category_set)
+        return SceneLibrary.builtin(env.sim, Path(env.cache_dir) if env.cache_dir else None)
+
+
+def prepare_scenes(config: TrainConfig) -> None:
+    """Build the run's missing scene caches up front, in parallel and with a progress bar."""
+    BuiltinLibrary(config)().prepare(config.env.scene_list(), progress=config.progress)
+
+
+def target_fields(config: TrainConfig) -> TargetFields:
+    """GloVe target embeddings and (for the parent reward) parent tables of the run's category set."""
+    return TargetFields(config.model.category_set)
+
+
+def reward_config(config: TrainConfig) -> RewardConfig:
+    env = config.env
+    return RewardConfig(
+        step_penalty=env.step_penalty,
+        success_reward=env.success_reward,
+        parent_reward=config.parent_reward,
+        parent_reward_rooms=env.parent_reward_rooms,
+    )
+
+
+def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:
+    return TrainingSampler(library, config.env.scene_list(), config.env.target_set, seed=seed)
+
+
+def training_env(config: TrainConfig, library: SceneLibrary, batch_size: int) -> BatchedNavEnv:
+    """``batch_size`` training episodes in lockstep on the run's scenes, targets and rewards."""
+    return BatchedNavEnv(
+        library,
+        config.env.scene_list(),
+        batch_size,
+        targets=target_fields(config),
+        rewards=reward_config(config),
+        mode="train",
+        max_steps=config.env.max_steps,
+    )
+
+
+def new_model(config: TrainConfig, device: torch.device | str = "cpu") -> NavModel:
+    return build_model(config.model).to(device).train()
