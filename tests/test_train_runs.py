@@ -180,7 +180,7 @@ def test_ctrl_c_and_resume_log_the_curves_of_a_straight_run(
 ) -> None:
     """Stopped three times mid-interval (issue 25, item 12): no record at a stop, no short interval
     after it; metrics.jsonl and TensorBoard hold what the uninterrupted run logs."""
-    from mapless.train.common import GracefulStop
+    from mapless.train.runtime import GracefulStop
 
     extra = ["algo=ppo", "ppo.envs=2", "ppo.steps=4", "ppo.minibatches=1"] if algo == "ppo" else []
     config = tiny_config("a3c", "batch_size=2", "episodes=12", "log_every=4", "checkpoint_every=8", *extra)
