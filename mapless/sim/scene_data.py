@@ -175,8 +175,10 @@ class SceneData:
         one component. Here a component counts when it holds at least ``USABLE_COMPONENT_SHARE`` of
         the largest one's poses: the islands of one or two positions (16 or 32 poses) that the
         union of reachable-grid sources leaves in a few scenes are left out, while both halves of
-        FloorPlan29 (768 and 624 poses), which the sources do not settle, are kept. A start must in
-        addition reach its target (samplers check that per target)."""
+        FloorPlan29 (768 and 624 poses) are kept: each is a real standing area (ALFRED's AI2-THOR
+        2.1 layout holds 35 and 30 of its positions, the rearrangement-2023 AI2-THOR 5 agent starts
+        24 and 18) and no source links them. A start must in addition reach its target (samplers
+        check that per target)."""
         sizes = np.bincount(self.components)
         usable = sizes >= USABLE_COMPONENT_SHARE * sizes.max() if len(sizes) else sizes.astype(bool)
         return usable[self.components]
