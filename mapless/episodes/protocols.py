@@ -63,7 +63,6 @@ PROTOCOLS: dict[str, Protocol] = {
         "x21-x29), reported once on test (even x22-x30), starts may see the target",
     ),
 }  # fmt: skip
-DEFAULT_PROTOCOL = "standard"
 
 
 def get_protocol(name: str) -> Protocol:

@@ -46,7 +46,7 @@ class TrainingSampler:
         self._starts: dict[tuple[str, str], np.ndarray] = {}
 
     def _target_instances(self, scene: str) -> np.ndarray:
-        """Instance types of the room's targets visible from at least one usable start."""
+        """Instance types of the room's targets visible from some pose that a usable start reaches."""
         if scene not in self._candidates:
             data = self.library[scene]
             _, visible_instances = data.visible_matrix_csr
