@@ -33,8 +33,18 @@ def test_every_parameter_changes_the_fingerprint():
         {"horizons": (-30, 0, 30)},
         {"eye_height": 1.5},
         {"horizontal_fov": 100.0},
+        {"strict_diagonals": True},
     ):
         assert cache.fingerprint(SimConfig(**{**FAST.as_dict(), **change})) != base
+
+
+def test_fields_added_later_keep_the_fingerprints_made_before_them():
+    # The shipped episode sets record the default simulator's fingerprint of before strict_diagonals.
+    from mapless.episodes import evalsets
+
+    assert evalsets.load(evalsets.builtin_path("test"))[1]["sim_fingerprint"] == cache.fingerprint(
+        SimConfig()
+    )
 
 
 @pytest.mark.parametrize(

@@ -20,6 +20,13 @@ def test_list_and_targets(capsys):
     assert code == 0 and "Vase" in out and "12/20" in out  # Vase is in 12 of 20 training living rooms
 
 
+def test_check_reports_components_and_never_visible_targets(capsys):
+    code, out, _ = run(capsys, "scenes", "check", "FloorPlan427", "--protocols", "standard")
+    row = next(line for line in out.splitlines() if line.startswith("FloorPlan427"))
+    assert code == 0 and "896+32" in row.split()  # a 32-pose island beside the usable component
+    assert "Target instances no pose can see under the standard protocol (success within 1.0 m)" in out
+
+
 def test_show_writes_a_png(tmp_path, capsys):
     out_file = tmp_path / "scene.png"
     code, _, _ = run(capsys, "scenes", "show", "FloorPlan425", "--pose=-1.25,1.75,90,30", "--target", "Towel",

@@ -258,6 +258,64 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
         assert (root / "sel" / "test.json").is_file()
 
 
+def test_reproduce_and_eval_under_the_reference_protocol(workspace, capsys):
+    from mapless.episodes.protocols import PROTOCOLS
+
+    root, config = workspace
+    rule = PROTOCOLS["reference"].sim(SimConfig())
+    library = SceneLibrary.builtin(rule)
+    for split, scene, seed in (("ref_val", "FloorPlan21", 0), ("ref_test", "FloorPlan22", 1)):
+        episodes = make_episodes(library, scene, 6, seed)
+        evalsets.save(root / f"{split}.json.gz", episodes, split, "mjolnir22", 0, fingerprint(rule))
+    text = (
+        config.read_text()
+        .replace("val.json.gz", "ref_val.json.gz")
+        .replace("test.json.gz", "ref_test.json.gz")
+    )
+    reference_config = root / "table1_reference.yaml"
+    reference_config.write_text(text.replace("models: [random, a3c]", "models: [a3c]"))
+    argv = ["reproduce", "table1", "--budget", "smoke", "--config", str(reference_config)]
+    assert main([*argv, "--protocol", "reference", "--reports", str(root / "reports")]) == 0
+    report = (root / "reports" / "table1-reference" / "table1.md").read_text()
+    assert "REFERENCE PROTOCOL" in report and "--protocol reference" in report
+    experiment = load_experiment("table1", "smoke", reference_config, ["eval.protocol=reference"])
+    cfg = train_config(experiment, "a3c", 1)
+    run = run_dir_for(experiment, cfg, "all")
+    assert cfg.env.sim.visibility_distance == 1.5 and (run / "final_model.pt").is_file()
+    # The run scored on the reference test episodes, selected on the reference val set's episodes.
+    out = root / "reference_eval"
+    argv = [
+        "eval",
+        str(run),
+        "--protocol",
+        "reference",
+        "--split",
+        "test",
+        "--episodes",
+        str(root / "ref_test.json.gz"),
+    ]
+    assert main([*argv, "--workers", "1", "--out", str(out)]) == 0
+    record = json.loads((out / "ref_test.json").read_text())
+    assert record["protocol"] == "reference" and "within 1.5 m" in record["protocol_label"]
+
+
+def test_eval_on_a_published_episode_pickle(workspace, capsys):
+    import pickle
+
+    root, _ = workspace
+    sample = Path(__file__).resolve().parent / "data" / "hoz_bathroom_val_22_sample.pkl"
+    entries = [e for e in pickle.loads(sample.read_bytes()) if e["scene"] == "FloorPlan425"][:8]
+    entries.append({**entries[0], "scene": "FloorPlan9999"})  # not an iTHOR scene: skipped, with the reason
+    cut = root / "bathroom_val.pkl"
+    cut.write_bytes(pickle.dumps(entries))
+    out = root / "published"
+    assert main(["eval", "oracle", "--episodes", str(cut), "--workers", "1", "--out", str(out)]) == 0
+    assert "8 of 9 episodes mapped" in capsys.readouterr().err
+    record = json.loads((out / "val.json").read_text())
+    assert record["mapping"]["mapped"] == 8 and record["mapping"]["skipped"][0][0] == 8
+    assert record["estimates"]["success"]["mean"] == 1.0 and len(record["episodes"][0]) == 8
+
+
 @pytest.mark.parametrize(
     "experiment, seeds, runs",
     [

@@ -12,9 +12,10 @@ from train_fixtures import fixture_library as training_scenes
 from train_fixtures import tiny_config
 
 from mapless.cli import main
+from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
-from mapless.evaluate.selection import PROTOCOLS, _cached_evaluate, best_index, load_episodes
+from mapless.evaluate.selection import _cached_evaluate, best_index, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
 from mapless.train.run import train
@@ -32,9 +33,16 @@ def test_best_by_success_then_spl_then_earliest():
 
 
 def test_paper_protocol_is_labelled():
-    assert PROTOCOLS["standard"][:2] == ("val", "test")
-    assert PROTOCOLS["paper"][:2] == ("paper", "paper")
-    assert "PAPER PROTOCOL" in PROTOCOLS["paper"][2]
+    assert (PROTOCOLS["standard"].select_split, PROTOCOLS["standard"].report_split) == ("val", "test")
+    assert (PROTOCOLS["paper"].select_split, PROTOCOLS["paper"].report_split) == ("paper", "paper")
+    assert "PAPER PROTOCOL" in PROTOCOLS["paper"].label
+    reference = PROTOCOLS["reference"]
+    assert (reference.select_split, reference.report_split, reference.visibility_distance) == (
+        "ref_val",
+        "ref_test",
+        1.5,
+    )
+    assert "REFERENCE PROTOCOL" in reference.label
 
 
 def test_builtin_sets_prefix_per_room():

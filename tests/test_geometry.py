@@ -184,3 +184,22 @@ def test_segment_crossing_an_obstacle_blocks_a_move_between_reachable_points():
 def test_settings_the_simulator_cannot_honour_are_refused(setting, value):
     with pytest.raises(MaplessError, match=f"sim.{setting} = .*: must be"):
         SimConfig(**{setting: value})
+
+
+def test_strict_diagonals_refuse_to_cut_a_corner():
+    import dataclasses
+
+    # An L of three grid points: (0, 0) -> (0.25, 0.25) at yaw 45 passes (0.25, 0), on the grid,
+    # and (0, 0.25), off it: a corner. SAVN's rule moves; the strict rule does not.
+    scene = dataclasses.replace(square_room([]), reachable=np.array([[0.0, 0.0], [0.25, 0.0], [0.25, 0.25]]))
+    loose = build_transitions(scene, CONFIG)
+    strict = build_transitions(scene, SimConfig(strict_diagonals=True))
+    n_yaw, n_hor = len(CONFIG.yaws), len(CONFIG.horizons)
+    pose = (0 * n_yaw + CONFIG.yaws.index(45)) * n_hor  # position 0, yaw 45, horizon 0
+    assert loose[pose, 0] == (2 * n_yaw + CONFIG.yaws.index(45)) * n_hor and strict[pose, 0] == pose
+    # Only the corner's two diagonal steps change, out of 0 at yaw 45 and back out of 2 at yaw 225.
+    differ = sorted({int(p) for p in np.flatnonzero((loose != strict).any(axis=1))})
+    corner = [
+        (p * n_yaw + CONFIG.yaws.index(y)) * n_hor + h for p, y in ((0, 45), (2, 225)) for h in range(n_hor)
+    ]
+    assert differ == sorted(corner) and (loose[differ, 1:] == strict[differ, 1:]).all()

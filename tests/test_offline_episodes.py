@@ -346,3 +346,74 @@ def test_plain_numeric_arrays_still_load_exactly(tmp_path):
     fortran = np.asfortranarray(np.arange(6, dtype=">i4").reshape(2, 3))
     episodes, _ = read_episode_file(_episode_file(tmp_path, fortran))
     np.testing.assert_array_equal(episodes[0].embedding, fortran)
+
+
+def test_exported_task_data_lists_only_ids_of_the_visible_object_map(tmp_path, floorplan425, savn_module):
+    seen = {floorplan425.instance_ids[i] for i in np.unique(floorplan425.visible_matrix_csr[1])}
+    towels = [i for i in floorplan425.instance_ids if i.startswith("Towel|")]
+    start = floorplan425.pose_tuple(0)
+    named = Episode("FloorPlan425", "Towel", start, 5, (*towels, "Towel|+09.00|+00.00|+09.00"))
+    every = Episode("FloorPlan425", "SoapBottle", start)  # task_data: every instance of the type
+    glove = {"Towel": np.ones(300), "SoapBottle": np.ones(300)}
+    path = tmp_path / "bathroom_test.pkl"
+    write_episode_file([named, every], path, "mjolnir", embeddings=glove, visible_ids=lambda scene: seen)
+    loaded = pickle.loads(path.read_bytes())
+    assert loaded[0]["task_data"] == [t for t in towels if t in seen] and loaded[1]["task_data"]
+    assert all(i in seen for entry in loaded for i in entry["task_data"])
+    with pytest.raises(Exception, match="no pose sees any Towel"):
+        write_episode_file([named], path, embeddings=glove, visible_ids=lambda scene: set())
+
+
+def test_v1_names_stand_in_for_missing_vectors(tmp_path, savn_module):
+    # SAVN's GloVe table has Lamp, not DeskLamp: the savn target set exports with it.
+    episode = Episode("FloorPlan301", "DeskLamp", (0.0, 0.0, 0, 0), 3, ("DeskLamp|+00.00|+00.00|+00.00",))
+    assert write_episode_file([episode], tmp_path / "x.pkl", embeddings={"Lamp": np.full(300, 2.0)}) == 1
+    np.testing.assert_allclose(pickle.loads((tmp_path / "x.pkl").read_bytes())[0]["glove_embedding"], 2.0)
+
+
+def test_one_file_per_room_type_as_the_references_read_them(
+    tmp_path, floorplan425, monkeypatch, capsys, savn_module
+):
+    import argparse
+
+    from mapless.cli import interop
+    from mapless.episodes import evalsets
+    from mapless.sim.library import SceneLibrary
+
+    monkeypatch.setattr(
+        SceneLibrary,
+        "builtin",
+        classmethod(lambda cls, config=None, cache_dir=None: cls(lambda n: floorplan425)),
+    )
+    made = [
+        Episode("FloorPlan425", "SoapBar", floorplan425.pose_tuple(0), episode_id=f"val/bathroom/{i:03d}")
+        for i in range(3)
+    ]
+    calls = []
+    monkeypatch.setattr(
+        evalsets, "make_eval_set", lambda library, split, target_set: calls.append(target_set) or made
+    )
+    parser = argparse.ArgumentParser()
+    interop.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(
+        ["interop", "episodes-export", "val", "--target-set", "savn", "--out", str(tmp_path)]
+    )
+    assert args.func(args) == 0
+    printed = capsys.readouterr().out
+    assert (
+        calls == ["savn"] and "making it" in printed and "fewer than the references' --num_ep 250" in printed
+    )
+    assert sorted(p.name for p in tmp_path.glob("*.pkl")) == ["bathroom_val.pkl"]
+    back, bad = read_episode_file(tmp_path / "bathroom_val.pkl")
+    assert not bad and len(back) == 3
+    # The built-in test set: one file per room type, 250 episodes each.
+    from mapless.offline.episodes import write_room_files
+
+    episodes = evalsets.load(evalsets.builtin_path("test"))[0]
+    files = write_room_files(
+        episodes, tmp_path / "test", "test", embeddings={e.target: np.ones(300) for e in episodes}
+    )
+    assert [p.name for p in files.values()] == [
+        f"{r}_test.pkl" for r in ("kitchen", "living_room", "bedroom", "bathroom")
+    ]
+    assert all(len(pickle.loads(p.read_bytes())) == 250 for p in files.values())

@@ -18,7 +18,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = parser.add_subparsers(dest="episodes_command", required=True)
 
     make = sub.add_parser("make", help="(re)generate evaluation episode files deterministically from a seed")
-    make.add_argument("--splits", default="val,test,paper")
+    make.add_argument(
+        "--splits",
+        default=",".join(evalsets.EVAL_SPLITS),
+        help="val, test, paper (the standard and paper protocols, success within 1.0 m) and ref_val, "
+        "ref_test (the reference protocol, 1.5 m); each is made under its protocol's success rule",
+    )
     make.add_argument("--target-set", default="mjolnir22")
     make.add_argument("--per-room", type=int, default=250)
     make.add_argument("--seed", type=int, default=0)
@@ -39,19 +44,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _make(args: argparse.Namespace) -> int:
+    from mapless.episodes.protocols import protocol_of_split
     from mapless.sim.cache import fingerprint
+    from mapless.sim.config import SimConfig
     from mapless.sim.library import SceneLibrary
 
-    config = sim_config_from(args)
-    library = SceneLibrary.builtin(config, args.cache_dir)
+    base = sim_config_from(args)
     mismatches = 0
+    libraries: dict[SimConfig, SceneLibrary] = {}
     for split in args.splits.split(","):
+        if split not in evalsets.EVAL_SPLITS:
+            raise MaplessError(f"no evaluation split {split!r}; choose from {evalsets.EVAL_SPLITS}")
+        config = protocol_of_split(split).sim(base)
+        library = libraries.setdefault(config, SceneLibrary.builtin(config, args.cache_dir))
         episodes = evalsets.make_eval_set(library, split, args.target_set, args.per_room, args.seed)
         path = args.out / f"{split}_{args.target_set}.json.gz"
         evalsets.save(path, episodes, split, args.target_set, args.seed, fingerprint(config))
         print(f"wrote {path}: {len(episodes)} episodes")
         if args.check:
-            same = path.read_bytes() == evalsets.builtin_path(split, args.target_set).read_bytes()
+            builtin = evalsets.builtin_path(split, args.target_set)
+            same = builtin.is_file() and path.read_bytes() == builtin.read_bytes()
             print(f"  identical to the built-in {split} set: {same}")
             mismatches += not same
     return 1 if mismatches else 0

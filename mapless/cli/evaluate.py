@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shlex
 import sys
 from pathlib import Path
 
 from mapless.cli.common import positive_int
+from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
 
 
@@ -21,11 +23,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "model", help="run folder, model file (.pt), or 'random' / 'oracle' (untrained baselines)"
     )
     ev.add_argument("--split", choices=("val", "test", "paper"), default="val")
-    ev.add_argument("--episodes", type=Path, help="episode file instead of the built-in set of --split")
+    ev.add_argument(
+        "--protocol",
+        choices=tuple(PROTOCOLS),
+        help="standard (default; --split paper: the paper protocol): success within 1.0 m, val x21-x25, "
+        "test x26-x30; reference: success within 1.5 m, val odd x21-x29, test even x22-x30, as the "
+        "SAVN/MJOLNIR data (a model trained under another rule is scored under this one)",
+    )
+    ev.add_argument(
+        "--episodes",
+        type=Path,
+        help="episode file instead of the built-in set of --split: a mapless set (.json.gz), or a published "
+        "SAVN/MJOLNIR/HOZ pickle (.pkl), mapped onto the scenes as `mapless interop episodes-import` does",
+    )
     ev.add_argument("--per-room", type=positive_int, help="only the first N episodes of each room type")
     ev.add_argument("--select", action="store_true",
-                    help="run folders: evaluate every checkpoint on val and report the best by SR (ties SPL) on --split "
-                         "(--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
+                    help="run folders: evaluate every checkpoint on the protocol's val set and report the best by SR "
+                         "(ties SPL) on --split (--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
     ev.add_argument(
         "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/interop.md)"
     )
@@ -60,6 +74,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--config", type=Path, help="experiment YAML (default experiments/EXPERIMENT_BUDGET.yaml)"
     )
     rep.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    rep.add_argument(
+        "--protocol",
+        choices=tuple(PROTOCOLS),
+        help="evaluation protocol (default: the config's eval.protocol, standard): reference = success "
+        "within 1.5 m, val odd x21-x29, test even x22-x30, as the SAVN/MJOLNIR data; its runs train "
+        "under the 1.5 m rule and its report goes to reports/EXPERIMENT-reference",
+    )
     rep.add_argument("--reports", type=Path, default=Path("reports"))
     rep.set_defaults(func=_reproduce)
 
@@ -80,9 +101,11 @@ def _eval(args: argparse.Namespace) -> int:
             "--select chooses a checkpoint on val, so it reports on --split test (or paper); "
             "the val scores of every checkpoint are in the selection table it prints"
         )
+    protocol = _protocol(args)
+    eval_split = split_for(protocol.name, args.split) if args.split != "paper" else "paper"
     library = LibrarySpec(offline_dir=str(args.offline_dir) if args.offline_dir else None)
     target_set = "mjolnir22"
-    meta: dict = {"split": args.split}
+    trained_rule = None
     if path.exists():
         from mapless.checkpoint import config_of, load_file, resolve_model_file
         from mapless.train.config import TrainConfig
@@ -90,6 +113,7 @@ def _eval(args: argparse.Namespace) -> int:
         model_file = resolve_model_file(path)
         cfg = config_of(load_file(model_file), TrainConfig)
         library = LibrarySpec.for_env(cfg.env, offline_dir=args.offline_dir)
+        trained_rule = cfg.env.sim.visibility_distance
         target_set = cfg.env.target_set
         settings = EvalSettings(**{**settings.__dict__, "category_set": cfg.model.category_set})
         label = cfg.model.name
@@ -101,31 +125,47 @@ def _eval(args: argparse.Namespace) -> int:
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
+    # The protocol's success rule, whatever rule the model was trained under (it sees the same
+    # observations under both; only success, Done and the optimal lengths change).
+    library = dataclasses.replace(library, sim=protocol.sim(library.sim))
+    meta: dict = {"split": eval_split, "protocol": protocol.name}
     sets = {"per_room": args.per_room, "library": library, "target_set": target_set}
-    episodes = load_episodes(args.split, args.episodes, **sets)
+    if args.episodes is not None and args.episodes.suffix == ".pkl":
+        episodes = _published_episodes(args.episodes, library, args.per_room, meta)
+    else:
+        episodes = load_episodes(eval_split, args.episodes, **sets)
     report_name = args.episodes.name if args.episodes else None
+    rule = _rule(protocol, library, trained_rule)
     if args.select:
         if not path.is_dir():
             raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
-        protocol = "paper" if args.split == "paper" else "standard"
-        select_eps = episodes if protocol == "paper" else load_episodes("val", **sets)
+        select_eps = episodes if protocol.name == "paper" else load_episodes(protocol.select_split, **sets)
         sel = select_and_report(
-            path, select_eps, episodes, settings, library, protocol, progress=print, report_name=report_name
+            path,
+            select_eps,
+            episodes,
+            settings,
+            library,
+            protocol.name,
+            progress=print,
+            report_name=report_name,
         )
         results, seconds, steps = sel.report.results, sel.report.seconds, sel.report.steps
         meta["selection"] = sel.summary()
-        meta["protocol_label"] = sel.label
+        meta["protocol_label"] = sel.label if "trained" not in rule else f"{sel.label}; {rule}"
     else:
         run = evaluate(spec, episodes, settings, library)
         results, seconds, steps = run.results, run.seconds, run.steps
-        meta["protocol_label"] = f"single model on {report_name or args.split}, no checkpoint selection"
+        meta["protocol_label"] = (
+            f"{protocol.name} protocol, single model on {report_name or eval_split}, no checkpoint selection; {rule}"
+        )
         meta["model_file"] = spec.checkpoint
     meta["steps_per_second"] = steps / seconds if seconds else None
     record = model_record(label, [results], meta)
-    write_json(record, out / f"{args.split}.json")
+    write_json(record, out / f"{eval_split}.json")
     text = "\n".join(
         [
-            f"# {label} on {args.split} ({len(results)} episodes)",
+            f"# {label} on {eval_split} ({len(results)} episodes)",
             "",
             f"Protocol: {meta['protocol_label']}.",
             "",
@@ -137,7 +177,7 @@ def _eval(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    write_text(out / f"{args.split}.md", text)
+    write_text(out / f"{eval_split}.md", text)
     print(text)
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "
@@ -145,12 +185,55 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _protocol(args: argparse.Namespace) -> Protocol:
+    """``--protocol``, or the one ``--split`` implies (paper: the paper protocol, else standard)."""
+    if args.split == "paper":
+        if args.protocol not in (None, "paper"):
+            raise MaplessError(
+                f"--split paper is the paper protocol's set; it has no {args.protocol} version"
+            )
+        return get_protocol("paper")
+    return get_protocol(args.protocol or "standard")
+
+
+def _rule(protocol: Protocol, library, trained_rule: float | None) -> str:
+    """The success rule a report states (and the one the model was trained under, if another)."""
+    if library.offline_dir is not None:
+        return "success as the offline data's visible-object maps say"
+    rule = f"success within {protocol.visibility_distance} m"
+    if trained_rule not in (None, protocol.visibility_distance):
+        rule += f" (trained with success within {trained_rule} m)"
+    return rule
+
+
+def _published_episodes(path: Path, library, per_room: int | None, meta: dict) -> list:
+    """A SAVN/MJOLNIR/HOZ pickle mapped onto the evaluation scenes; the mapping report goes to stderr
+    and into the record."""
+    from mapless.evaluate.selection import first_per_room
+    from mapless.offline.episodes import import_episode_file
+
+    scenes = library.build()
+    report = import_episode_file(path, scene_data=scenes.__getitem__)
+    print(f"{path}: {report.summary()}", file=sys.stderr)
+    meta["mapping"] = {
+        "total": report.total,
+        "mapped": report.mapped,
+        "skipped": [list(s) for s in report.skipped],
+    }
+    if not report.episodes:
+        raise MaplessError(f"{path}: no episode could be mapped onto the scenes; nothing to evaluate")
+    return first_per_room(report.episodes, per_room, source=str(path))
+
+
 def _reproduce(args: argparse.Namespace) -> int:
     from mapless.experiments import load_experiment, reproduce
 
-    config = load_experiment(args.experiment, args.budget, args.config, args.set, args.seeds)
+    overrides = [*args.set, *([f"eval.protocol={args.protocol}"] if args.protocol else [])]
+    config = load_experiment(args.experiment, args.budget, args.config, overrides, args.seeds)
     # The report records the exact command (overrides included) that produced it.
     parts = ["mapless", "reproduce", args.experiment, "--budget", args.budget]
+    if args.protocol:
+        parts += ["--protocol", args.protocol]
     if args.seeds is not None:
         parts += ["--seeds", str(args.seeds)]
     if args.config:

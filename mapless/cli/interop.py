@@ -6,8 +6,8 @@
 * ``mapless interop check DIR``: load offline folders as training would and summarise them.
 * ``mapless interop episodes-import FILE.pkl``: map a published episode pickle onto the built-in
   scenes, or onto an offline root's (a mapless episode file).
-* ``mapless interop episodes-export SOURCE --format savn|mjolnir --out FILE.pkl``: our episode
-  sets as evaluation pickles for the original code bases.
+* ``mapless interop episodes-export SOURCE --format savn|mjolnir --out DIR``: our episode sets as
+  evaluation pickles for the original code bases, one per room type.
 """
 
 from __future__ import annotations
@@ -75,11 +75,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_sim_arguments(imp)
     imp.set_defaults(func=_import_episodes)
 
-    exp = sub.add_parser("episodes-export", help="write a mapless episode set as a SAVN/MJOLNIR pickle")
-    exp.add_argument("source", help="a built-in split (val, test, paper) or a mapless episode file")
+    exp = sub.add_parser(
+        "episodes-export",
+        help="write a mapless episode set as SAVN/MJOLNIR pickles, one per room type",
+        description="Writes OUT/<room>_<test|val|test_val>.pkl, the layout the references read (or one "
+        "OUT.pkl with every room). task_data lists only the target ids of the scenes' visible-object "
+        "maps, as `mapless export` writes them under the same simulator settings.",
+    )
+    exp.add_argument(
+        "source",
+        help="a built-in split (val, test, paper, ref_val, ref_test) or a mapless episode file",
+    )
     exp.add_argument("--format", choices=FORMATS, default="savn")
-    exp.add_argument("--out", type=Path, required=True)
-    exp.add_argument("--target-set", default="mjolnir22", help="built-in set to export (default mjolnir22)")
+    exp.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="folder for the per-room files (FILE.pkl: one file with every room type)",
+    )
+    exp.add_argument(
+        "--target-set",
+        default="mjolnir22",
+        help="target set of a built-in split (default mjolnir22, shipped; others, e.g. savn, are made "
+        "on demand as `mapless episodes make --target-set NAME` makes them)",
+    )
     exp.add_argument(
         "--glove-set",
         default="mjolnir101",
@@ -88,6 +107,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     exp.add_argument(
         "--glove", type=Path, help="HDF5 with one GloVe vector per type (e.g. SAVN's glove_map300d.hdf5)"
     )
+    add_sim_arguments(exp)
     exp.set_defaults(func=_export_episodes)
 
 
@@ -227,23 +247,56 @@ def _glove_from_hdf5(path: Path) -> dict:
 
 
 def _export_episodes(args: argparse.Namespace) -> int:
-    from mapless.episodes import evalsets
-    from mapless.offline.episodes import write_episode_file
+    import numpy as np
 
+    from mapless.episodes import evalsets
+    from mapless.episodes.protocols import PROTOCOLS, protocol_of_split
+    from mapless.offline.episodes import REFERENCE_EPISODES_PER_ROOM, write_episode_file, write_room_files
+    from mapless.scenes.catalogue import room_type_of
+    from mapless.sim.cache import fingerprint
+    from mapless.sim.library import SceneLibrary
+
+    base = sim_config_from(args)
     path = Path(args.source)
-    if not path.exists():
-        if args.source not in evalsets.EVAL_SPLITS:
-            raise MaplessError(
-                f"{args.source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}"
-            )
-        path = evalsets.builtin_path(args.source, args.target_set)
-    episodes, _ = evalsets.load(path)
+    if path.exists():
+        episodes, header = evalsets.load(path)
+        split = header["split"]
+        # The visible-object maps follow the success rule the file was made under, if it is a protocol's.
+        rules = [base, *(p.sim(base) for p in PROTOCOLS.values())]
+        config = next((c for c in rules if fingerprint(c) == header["sim_fingerprint"]), base)
+    elif args.source in evalsets.EVAL_SPLITS:
+        split = args.source
+        path = evalsets.builtin_path(split, args.target_set)
+        episodes = evalsets.load(path)[0] if path.exists() else None
+        config = protocol_of_split(split).sim(base)
+    else:
+        raise MaplessError(f"{args.source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}")
+    library = SceneLibrary.builtin(config, args.cache_dir)
+    if episodes is None:
+        print(
+            f"no built-in {split} set of target set {args.target_set}: making it (seed 0, 250 per room type)"
+        )
+        episodes = evalsets.make_eval_set(library, split, args.target_set)
     if args.glove is not None:
         embeddings = _glove_from_hdf5(args.glove)
     else:
         from mapless.knowledge.glove import glove_table
 
         embeddings = glove_table(args.glove_set)
-    count = write_episode_file(episodes, args.out, args.format, embeddings=embeddings)
-    print(f"wrote {args.out}: {count} episodes in the {args.format} pickle format")
+
+    def visible_ids(scene: str) -> set[str]:
+        data = library[scene]
+        return {data.instance_ids[i] for i in np.unique(data.visible_matrix_csr[1])}
+
+    kwargs = {"embeddings": embeddings, "visible_ids": visible_ids}
+    if args.out.suffix == ".pkl":
+        count = write_episode_file(episodes, args.out, args.format, **kwargs)
+        print(f"wrote {args.out}: {count} episodes in the {args.format} pickle format")
+        return 0
+    files = write_room_files(episodes, args.out, split, args.format, **kwargs)
+    for room, file in files.items():
+        count = sum(room_type_of(e.scene) == room for e in episodes)
+        short = count < REFERENCE_EPISODES_PER_ROOM
+        note = f" (fewer than the references' --num_ep {REFERENCE_EPISODES_PER_ROOM})" if short else ""
+        print(f"wrote {file}: {count} episodes in the {args.format} pickle format{note}")
     return 0

@@ -13,6 +13,7 @@ from mapless.errors import UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
 from mapless.scenes.categories import targets
 from mapless.scenes.layout import load_scene
+from mapless.sim.scene_data import USABLE_COMPONENT_SHARE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,10 +49,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show.set_defaults(func=_show)
 
     check = sub.add_parser(
-        "check", help="per scene: poses, reachable targets, share of poses seeing an object"
+        "check",
+        help="per scene: poses, pose-graph components, reachable targets, share of poses seeing an "
+        "object; then every target instance no pose can see, under each protocol's success rule",
     )
     check.add_argument("scenes", nargs="?", default="all")
     check.add_argument("--target-set", default="mjolnir22")
+    check.add_argument(
+        "--protocols",
+        default="standard,reference",
+        help="protocols whose success rule the never-visible targets are listed under (the table uses the "
+        "first); each rule has its own scene cache, built on first use",
+    )
     add_sim_arguments(check)
     check.set_defaults(func=_check)
 
@@ -116,29 +125,69 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
+    from mapless.episodes.protocols import get_protocol
     from mapless.sim.library import SceneLibrary
 
-    config = sim_config_from(args)
-    library = SceneLibrary.builtin(config, args.cache_dir)
+    base = sim_config_from(args)
+    protocols = [get_protocol(name) for name in args.protocols.split(",")]
+    libraries = {p.name: SceneLibrary.builtin(p.sim(base), args.cache_dir) for p in protocols}
     room_targets = targets(args.target_set)
+    scenes = resolve_scenes(args.scenes)
+    first = protocols[0]
+    config = first.sim(base)
+    print(f"Under the {first.name} protocol (success within {first.visibility_distance} m):")
     print(
-        f"{'scene':<14}{'poses':>7}{'positions':>10}  {'targets reachable':<20}{'sees object':>12}"
-        f"{'sees target':>12}{'geo/eucl':>10}"
+        f"{'scene':<14}{'poses':>7}{'positions':>10}{'components':>12}  {'targets reachable':<20}"
+        f"{'sees object':>12}{'sees target':>12}{'geo/eucl':>10}"
     )
-    for name in resolve_scenes(args.scenes):
-        data = library[name]
+    for name in scenes:
+        data = libraries[first.name][name]
         wanted = [t for t in room_targets[data.room_type] if len(data.instances_of(t))]
-        reachable = [t for t in wanted if (data.target_distances(t)[data.horizon == 0] >= 0).any()]
+        usable_starts = (data.horizon == 0) & data.usable_poses
+        reachable = [t for t in wanted if (data.target_distances(t)[usable_starts] >= 0).any()]
         sees_object = np.diff(data.view_ptr) > 0
         goal_any = np.zeros(data.n_poses, bool)
         for t in wanted:
             goal_any |= data.goal_mask(t)
         print(
-            f"{name:<14}{data.n_poses:>7}{data.n_poses // (len(config.yaws) * len(config.horizons)):>10}  "
+            f"{name:<14}{data.n_poses:>7}{data.n_poses // (len(config.yaws) * len(config.horizons)):>10}"
+            f"{_components(data):>12}  "
             f"{len(reachable)}/{len(wanted)} ({len(room_targets[data.room_type])} in set){'':<4}"
             f"{sees_object.mean():>11.0%}{goal_any.mean():>12.0%}{_detour_ratio(data):>10.2f}"
         )
+    print("components: poses per strongly connected component of the pose graph; episodes start only in the")
+    print(f"usable ones (those holding at least {USABLE_COMPONENT_SHARE:.0%} of the largest one's poses)")
+    for protocol in protocols:
+        never = [
+            (name, ids)
+            for name in scenes
+            if (ids := _never_visible(libraries[protocol.name][name], room_targets))
+        ]
+        print(
+            f"\nTarget instances no pose can see under the {protocol.name} protocol "
+            f"(success within {protocol.visibility_distance} m): {sum(len(ids) for _, ids in never)}"
+        )
+        for name, ids in never:
+            print(f"  {name}: {', '.join(ids)}")
     return 0
+
+
+def _components(data) -> str:
+    """``1``, or the pose count of each component (largest first) joined by ``+``."""
+    sizes = np.bincount(data.components)
+    return "1" if len(sizes) == 1 else "+".join(str(n) for n in sizes)
+
+
+def _never_visible(data, room_targets: dict) -> list[str]:
+    """Ids of the scene's instances of its room's target types that no pose sees (in view, within
+    the success rule's distance, not inside a closed receptacle)."""
+    seen = set(np.unique(data.visible_matrix_csr[1]).tolist())
+    wanted = set(room_targets[data.room_type])
+    return [
+        iid
+        for i, (iid, kind) in enumerate(zip(data.instance_ids, data.instance_types, strict=True))
+        if kind in wanted and i not in seen
+    ]
 
 
 def _detour_ratio(data) -> float:

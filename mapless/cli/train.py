@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from mapless.config import load_config
+from mapless.episodes.protocols import PROTOCOLS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,6 +38,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--runs-root", type=Path, default=Path("runs"), help="parent of the default run folder"
     )
     parser.add_argument("--device", help="shortcut for --set device=...")
+    parser.add_argument(
+        "--protocol",
+        choices=tuple(PROTOCOLS),
+        help="train for an evaluation protocol's success rule: reference = within 1.5 m, as the SAVN/MJOLNIR "
+        "data (--set env.sim.visibility_distance=1.5); standard and paper = 1.0 m, the default",
+    )
     parser.set_defaults(func=_train)
 
 
@@ -46,9 +53,13 @@ def _train(args: argparse.Namespace) -> int:
     from mapless.train.run import default_run_dir, resume_config, train
 
     overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
+    if args.protocol:
+        overrides.append(f"env.sim.visibility_distance={PROTOCOLS[args.protocol].visibility_distance}")
     if args.resume is not None:
         if args.config is not None:
             raise ConfigError("give either CONFIG.yaml or --resume RUN_DIR, not both")
+        if args.protocol:
+            raise ConfigError("a resumed run keeps the success rule it was trained under; drop --protocol")
         config, state = resume_config(args.resume, overrides)
         run_dir = args.resume
     else:

@@ -2,9 +2,13 @@
 
 Per room type, ``per_room`` episodes: scene uniform over the split's scenes of the room, target
 drawn over visible instances of the room's targets (as in training), start a uniform (position,
-yaw) at horizon 0 from which the target is reachable and not already visible. The optimal length
-(actions including ``Done``) is stored. The file records the simulator fingerprint it was made
-with; loading it under other simulator parameters is an error, since lengths would differ.
+yaw) at horizon 0 from which the target is reachable, in the scene's usable pose-graph component
+(``SceneData.usable_poses``; the ``standard`` and ``paper`` sets predate that rule, see
+``Protocol.island_starts``). Under the ``standard`` and ``paper`` protocols the start must not already
+see the target; the ``reference`` protocol's sets (``ref_val``, ``ref_test``) allow it, as the
+references' published sets do. The optimal length (actions including ``Done``) is stored. The file
+records the simulator fingerprint it was made with; loading it under other simulator parameters is
+an error, since lengths would differ.
 """
 
 from __future__ import annotations
@@ -18,15 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
+from mapless.episodes.protocols import protocol_of_split
 from mapless.errors import MaplessError
 from mapless.files import write_bytes
-from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, scene_names
+from mapless.scenes.catalogue import ROOM_TYPES, scene_names, split_range_label
 from mapless.scenes.categories import targets
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
 FORMAT = "mapless-episodes/1"
-EVAL_SPLITS = ("val", "test", "paper")
+EVAL_SPLITS = ("val", "test", "paper", "ref_val", "ref_test")
 
 
 def make_eval_set(
@@ -38,6 +43,9 @@ def make_eval_set(
     room_types: tuple[str, ...] = ROOM_TYPES,
 ) -> list[Episode]:
     room_targets = targets(target_set)
+    protocol = protocol_of_split(split)
+    # A start that already sees the target has distance 0: allowed only where the protocol says so.
+    nearest = 0 if protocol.visible_starts else 1
     episodes = []
     for room in room_types:
         rng = np.random.default_rng([seed, ROOM_TYPES.index(room)])
@@ -59,7 +67,9 @@ def make_eval_set(
             target = types[rng.integers(len(types))]
             start = int(starts[rng.integers(len(starts))])
             distance = int(data.target_distances(target)[start])
-            if distance <= 0:  # unreachable (-1) or already visible (0)
+            if distance < nearest:  # unreachable (-1), or in view (0) where the protocol refuses that
+                continue
+            if not (protocol.island_starts or data.usable_poses[start]):
                 continue
             episodes.append(
                 Episode(
@@ -79,7 +89,7 @@ def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_f
     payload = {
         "format": FORMAT,
         "split": split,
-        "scenes": f"x{SPLITS[split].start:02d}-x{SPLITS[split].stop - 1:02d}",
+        "scenes": split_range_label(split),
         "target_set": target_set,
         "seed": seed,
         "sim_fingerprint": sim_fingerprint,

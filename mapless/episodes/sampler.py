@@ -7,8 +7,12 @@
    from some pose of the scene (so types are weighted by instance count), and every instance of
    that type counts for success.
 
-The references neither check that the target is reachable nor that it is not already visible at
-the start; ``require_reachable`` adds the first check (off by default, for fidelity).
+The references check neither that the target is reachable nor that it is not already visible at
+the start; in their data every pose is reachable from every other (BFS-generated from one start),
+so with a visible target drawn, no start is unwinnable. Here a few scenes have pose-graph islands
+(``SceneData.usable_poses``), so the start is drawn uniformly over the usable horizon-0 poses from
+which the target is reachable: in a scene without islands those are all its horizon-0 poses, and
+the draws are the references' (and those of earlier versions of this sampler) exactly.
 """
 
 from __future__ import annotations
@@ -28,11 +32,9 @@ class TrainingSampler:
         scenes: list[str],
         target_set: str = "mjolnir22",
         seed: int = 0,
-        require_reachable: bool = False,
     ):
         self.library = library
         self.targets = targets(target_set)
-        self.require_reachable = require_reachable
         self.scenes_by_room = {r: [s for s in scenes if room_type_of(s) == r] for r in ROOM_TYPES}
         self.room_cycle = [r for r in ROOM_TYPES if self.scenes_by_room[r]]
         if not self.room_cycle:
@@ -40,19 +42,28 @@ class TrainingSampler:
         rng = np.random.default_rng(seed)
         rng.shuffle(self.room_cycle)
         self.position = 0  # episodes sampled so far: where the room cycle stands (checkpointed)
-        self._candidates: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._candidates: dict[str, np.ndarray] = {}
+        self._starts: dict[tuple[str, str], np.ndarray] = {}
 
-    def _target_instances(self, scene: str) -> tuple[np.ndarray, np.ndarray]:
-        """Instance types of the room's targets visible from at least one pose, and start poses."""
+    def _target_instances(self, scene: str) -> np.ndarray:
+        """Instance types of the room's targets visible from some pose that a usable start reaches."""
         if scene not in self._candidates:
             data = self.library[scene]
             _, visible_instances = data.visible_matrix_csr
             seen = np.unique(visible_instances)
             wanted = set(self.targets[data.room_type])
-            types = np.array([data.instance_types[i] for i in seen if data.instance_types[i] in wanted])
-            starts = np.flatnonzero(data.horizon == 0)
-            self._candidates[scene] = (types, starts)
+            types = [data.instance_types[i] for i in seen if data.instance_types[i] in wanted]
+            # A type visible only from an island has no start: never drawn (an unwinnable episode).
+            self._candidates[scene] = np.array([t for t in types if len(self._start_poses(scene, t))])
         return self._candidates[scene]
+
+    def _start_poses(self, scene: str, target: str) -> np.ndarray:
+        """Horizon-0 poses of the usable component from which ``target`` is reachable."""
+        if (scene, target) not in self._starts:
+            data = self.library[scene]
+            ok = (data.horizon == 0) & data.usable_poses & (data.target_distances(target) >= 0)
+            self._starts[scene, target] = np.flatnonzero(ok)
+        return self._starts[scene, target]
 
     def sample(self, rng: np.random.Generator) -> Episode:
         room = self.room_cycle[self.position % len(self.room_cycle)]
@@ -60,17 +71,11 @@ class TrainingSampler:
         scenes = self.scenes_by_room[room]
         for _ in range(100):
             scene = scenes[rng.integers(len(scenes))]
-            types, starts = self._target_instances(scene)
+            types = self._target_instances(scene)
             if len(types) == 0:
                 continue
             target = str(types[rng.integers(len(types))])
-            data = self.library[scene]
+            starts = self._start_poses(scene, target)
             start = int(starts[rng.integers(len(starts))])
-            if self.require_reachable and data.target_distances(target)[start] < 0:
-                continue
-            return Episode(
-                scene=scene,
-                target=target,
-                start=data.pose_tuple(start),
-            )
+            return Episode(scene=scene, target=target, start=self.library[scene].pose_tuple(start))
         raise RuntimeError(f"no valid training episode found in {room} scenes {scenes}")

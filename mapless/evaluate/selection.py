@@ -1,11 +1,10 @@
-"""Checkpoint selection and the two evaluation protocols.
+"""Checkpoint selection under the evaluation protocols (mapless.episodes.protocols).
 
-* ``standard`` (SAVN's ``full_eval.py``): evaluate every checkpoint of a run on ``val`` (x21-x25),
-  keep the best by success rate (ties: SPL, then the earlier checkpoint), evaluate it once on
-  ``test`` (x26-x30) and report that.
-* ``paper`` (what the paper and MJOLNIR did): select *and* report on the same episodes of x21-x30.
-  The reported number is then a maximum over checkpoints on the test episodes, an optimistic
-  estimate; every report made with it says so.
+SAVN's ``full_eval.py``: evaluate every checkpoint of a run on the protocol's selection set, keep
+the best by success rate (ties: SPL, then the earlier checkpoint), evaluate it once on the report
+set and report that. Under the ``paper`` protocol (what the paper and MJOLNIR did) both are the
+same episodes of x21-x30: the reported number is then a maximum over checkpoints on the test
+episodes, an optimistic estimate; every report made with it says so.
 """
 
 from __future__ import annotations
@@ -17,21 +16,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from mapless.episodes import evalsets
+from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, aggregate
 from mapless.evaluate.report import read_json, write_json
 from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
-
-PROTOCOLS: dict[str, tuple[str, str, str]] = {
-    "standard": ("val", "test", "selected on val (x21-x25), reported once on test (x26-x30)"),
-    "paper": (
-        "paper",
-        "paper",
-        "PAPER PROTOCOL: selected and reported on the same x21-x30 episodes (optimistic, as in the paper/MJOLNIR)",
-    ),
-}
 
 
 def load_episodes(
@@ -56,6 +47,16 @@ def load_episodes(
             f"`mapless episodes make --target-set {target_set}` or pass --episodes FILE"
         )
     episodes, _ = evalsets.load(path, library.sim_fingerprint if library else None)
+    return first_per_room(episodes, per_room, rooms, source=str(path))
+
+
+def first_per_room(
+    episodes: Sequence[Episode],
+    per_room: int | None,
+    rooms: Sequence[str] = ROOM_TYPES,
+    source: str = "the set",
+) -> list[Episode]:
+    """The first ``per_room`` episodes of each room type in ``rooms`` (all with None), in order."""
     kept: list[Episode] = []
     count = dict.fromkeys(rooms, 0)
     for episode in episodes:
@@ -64,7 +65,7 @@ def load_episodes(
             kept.append(episode)
             count[room] += 1
     if not kept:
-        raise MaplessError(f"{path} has no episodes of room types {list(rooms)}")
+        raise MaplessError(f"{source} has no episodes of room types {list(rooms)}")
     return kept
 
 
@@ -162,12 +163,14 @@ def select_and_report(
     in the label and the cache. Per-checkpoint results are cached under ``run_dir/eval/``."""
     if protocol not in PROTOCOLS:
         raise MaplessError(f"unknown protocol {protocol!r}; choose one of {list(PROTOCOLS)}")
-    select_split, report_split, label = PROTOCOLS[protocol]
+    p = PROTOCOLS[protocol]
+    select_split, report_split, label = p.select_split, p.report_split, p.label
     if report_name and protocol == "paper":
         select_split = report_split = report_name
         label = f"PAPER PROTOCOL: selected and reported on the same episodes of {report_name} (optimistic)"
     elif report_name:
-        report_split, label = report_name, f"selected on val (x21-x25), reported once on {report_name}"
+        report_split = report_name
+        label = f"{protocol} protocol: selected on {p.select_split}, reported once on {report_name}; success within {p.visibility_distance} m"
     run_dir = Path(run_dir)
     scores, runs = [], []
     for episodes_done, path in candidates(run_dir):
@@ -187,7 +190,7 @@ def select_and_report(
             progress(f"  {path.name}: {select_split} SR {m['success']:.3f} SPL {m['spl']:.3f}")
     best = best_index(scores)
     chosen = scores[best]["path"]
-    if protocol == "paper" or report_episodes is None:
+    if p.select_split == p.report_split or report_episodes is None:
         report = runs[best]
     else:
         cache = run_dir / "eval" / f"{report_split}_{Path(chosen).stem}.json"

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Literal
 
 from mapless.config import ConfigError, apply_overrides, from_dict, load_config
+from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
 
@@ -22,13 +23,15 @@ ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": 
 class ExperimentEval:
     """How runs are evaluated.
 
-    protocol: ``standard`` (select on val, report on test) or ``paper`` (select and report on x21-x30).
+    protocol: ``standard`` (select on val, report on test), ``paper`` (select and report on x21-x30)
+        or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30; its
+        runs train under the 1.5 m rule too); mapless.episodes.protocols.
     per_room: the first N episodes per room type of the fixed sets (250 = all).
     select: evaluate every checkpoint and select (False: the final model only).
     select_file / report_file: episode files replacing the built-in val / test sets (tests).
     """
 
-    protocol: Literal["standard", "paper"] = "standard"
+    protocol: Literal["standard", "paper", "reference"] = "standard"
     per_room: int = 250
     rooms: tuple[str, ...] = ROOM_TYPES
     select: bool = True
@@ -117,13 +120,23 @@ def load_experiment(
 
 
 def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
-    """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and seed."""
+    """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and
+    seed, and the success rule of the evaluation protocol (a run learns the rule it is scored by)."""
     from mapless.train.config import TrainConfig
 
     data = json.loads(json.dumps(config.train))
     for layer in (config.per_model.get(model, {}), extra or {}):
         data = _merge(data, layer)
-    data = apply_overrides(data, [f"model.name={model}", f"seed={seed}"])
+    visibility = get_protocol(config.eval.protocol).visibility_distance
+    stated = data.get("env", {}).get("sim", {}).get("visibility_distance", visibility)
+    if stated != visibility:
+        raise ConfigError(
+            f"config key 'train.env.sim.visibility_distance': {stated} contradicts the {config.eval.protocol} "
+            f"protocol's success rule ({visibility} m); leave it out, the protocol sets it"
+        )
+    data = apply_overrides(
+        data, [f"model.name={model}", f"seed={seed}", f"env.sim.visibility_distance={visibility}"]
+    )
     return from_dict(TrainConfig, data)
 
 

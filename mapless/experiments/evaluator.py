@@ -8,10 +8,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-from mapless.evaluate.selection import PROTOCOLS, load_episodes, select_and_report
+from mapless.evaluate.selection import load_episodes, select_and_report
 from mapless.experiments.config import ExperimentConfig, train_config
 
 
@@ -31,16 +32,17 @@ class Evaluator:
 
     def __post_init__(self) -> None:
         e = self.config.eval
-        select_split, report_split, self.protocol_label = PROTOCOLS[e.protocol]
+        protocol = get_protocol(e.protocol)
+        self.protocol_label = protocol.label
         self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
         self.scenes, target_set = experiment_scenes(self.config)
         self._untrained: dict[str, tuple[list[EpisodeResult], dict]] = {}
         sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
-        self.select_episodes = load_episodes(select_split, e.select_file, **sets)
+        self.select_episodes = load_episodes(protocol.select_split, e.select_file, **sets)
         self.report_episodes = (
             self.select_episodes
-            if e.protocol == "paper"
-            else load_episodes(report_split, e.report_file, **sets)
+            if protocol.select_split == protocol.report_split
+            else load_episodes(protocol.report_split, e.report_file, **sets)
         )
 
     def library(self, train_cfg) -> LibrarySpec:

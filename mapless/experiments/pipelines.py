@@ -303,8 +303,11 @@ def _write(out: Path, name: str, payload: dict, lines: list[str]) -> None:
 
 def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log: Callable[[str], None] = print,
               command: str = "") -> dict:  # fmt: skip
-    """Run one experiment end to end; returns the pipeline's payload and markdown."""
-    out = Path(reports_dir) / config.experiment
+    """Run one experiment end to end; returns the pipeline's payload and markdown. Reports go to
+    ``<reports_dir>/<experiment>``, or ``<experiment>-<protocol>`` under a protocol other than the
+    standard one, so that a table under two protocols stands side by side."""
+    suffix = "" if config.eval.protocol == "standard" else f"-{config.eval.protocol}"
+    out = Path(reports_dir) / f"{config.experiment}{suffix}"
     start = time.perf_counter()
     result = PIPELINES[config.experiment](
         config, out, log, command or f"mapless reproduce {config.experiment} --budget {config.budget}"

@@ -3,7 +3,9 @@
 Room type r in {kitchen, living_room, bedroom, bathroom} owns FloorPlan{100*i + n}, n = 1..30
 (kitchens have no hundreds digit). Splits (allenact/rearrangement convention):
 ``train`` = n 1-20, ``val`` = n 21-25, ``test`` = n 26-30. The ``paper`` protocol evaluates on
-n 21-30, as the paper (and MJOLNIR) did; it is labelled as such wherever it is reported.
+n 21-30, as the paper (and MJOLNIR) did; it is labelled as such wherever it is reported. The
+``reference`` protocol uses the split of SAVN's published episode pickles: ``ref_val`` = the odd
+n 21-29, ``ref_test`` = the even n 22-30 (mapless.episodes.protocols).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ SPLITS: dict[str, range] = {
     "val": range(21, 26),
     "test": range(26, 31),
     "paper": range(21, 31),
+    "ref_val": range(21, 30, 2),
+    "ref_test": range(22, 31, 2),
     "all": range(1, 31),
 }
 _ROOM_OFFSET = {"kitchen": 0, "living_room": 200, "bedroom": 300, "bathroom": 400}
@@ -55,6 +59,15 @@ def room_type_of(scene: str) -> str:
 def split_of(scene: str) -> str:
     index = _number(scene) % 100
     return next(s for s in ("train", "val", "test") if index in SPLITS[s])
+
+
+def split_range_label(split: str) -> str:
+    """``x21-x25``; ``x21-x29 odd`` for the reference protocol's every-other-plan splits."""
+    numbers = SPLITS[split]
+    label = f"x{numbers[0]:02d}-x{numbers[-1]:02d}"
+    if numbers.step == 2:
+        label += " odd" if numbers[0] % 2 else " even"
+    return label
 
 
 def scene_names(split: str = "all", room_types: tuple[str, ...] | list[str] = ROOM_TYPES) -> list[str]:

@@ -28,7 +28,8 @@ def pose_ids(n_positions: int, config: SimConfig) -> tuple[np.ndarray, np.ndarra
 def build_transitions(scene: Scene, config: SimConfig) -> np.ndarray:
     """``[P, 5]`` successor table. MoveAhead moves one grid step along the heading, diagonals by
     (+-g, +-g); it fails when the destination is not on the reachable grid or the segment crosses
-    an obstacle footprint. Rotations wrap; looks fail at the ends of the horizon list."""
+    an obstacle footprint (``strict_diagonals``: or a diagonal step's orthogonal neighbour is off
+    the grid). Rotations wrap; looks fail at the ends of the horizon list."""
     positions = scene.reachable
     n_pos, n_yaw, n_hor = len(positions), len(config.yaws), len(config.horizons)
     g = config.grid_size
@@ -45,7 +46,13 @@ def build_transitions(scene: Scene, config: SimConfig) -> np.ndarray:
         yaw = np.radians(config.yaws[y])
         step = (int(np.round(np.sin(yaw))), int(np.round(np.cos(yaw))))
         x, z = positions[p]
-        dest = cell.get((round(x / g) + step[0], round(z / g) + step[1]))
+        i, j = round(x / g), round(z / g)
+        dest = cell.get((i + step[0], j + step[1]))
+        # The strict rule: a diagonal step passes between two orthogonal neighbours; one off the grid
+        # is a wall or counter corner the agent would bump into.
+        corner = (i + step[0], j) not in cell or (i, j + step[1]) not in cell
+        if dest is not None and config.strict_diagonals and all(step) and corner:
+            return None
         if dest is not None and any(
             segment_hits_polygon(positions[p], positions[dest], poly) for poly in polygons
         ):

@@ -61,10 +61,14 @@ def _scene_file_digest() -> str:
     return hashlib.sha256(resources.files("mapless.data").joinpath(SCENE_FILE).read_bytes()).hexdigest()
 
 
+#: Fields added after caches and episode files were made: hashed only when they differ from their
+#: default, so that adding one keeps every fingerprint made before it (and the shipped episode sets).
+_LATER_FIELDS = {"strict_diagonals": False}
+
+
 def fingerprint(config: SimConfig) -> str:
-    payload = json.dumps(
-        {"sim": config.as_dict(), "version": SIM_VERSION, "data": _scene_file_digest()}, sort_keys=True
-    )
+    sim = {k: v for k, v in config.as_dict().items() if _LATER_FIELDS.get(k, object()) != v}
+    payload = json.dumps({"sim": sim, "version": SIM_VERSION, "data": _scene_file_digest()}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 

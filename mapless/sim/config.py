@@ -35,6 +35,10 @@ class SimConfig:
     obstacle_margin: float = 0.1
     #: Distance from the reachable grid that still counts as room interior when walls are built.
     wall_clearance: float = 0.45
+    #: A diagonal MoveAhead also needs both orthogonal neighbours it passes between on the grid (off:
+    #: SAVN's offline rule, which lets about 5 % of diagonal steps cut past a wall corner; real
+    #: AI2-THOR's 45° step would stop there). docs/simulator.md, "Diagonal moves".
+    strict_diagonals: bool = False
 
     def __post_init__(self) -> None:
         # MoveAhead steps to a neighbour on the 0.25 m grid of the built-in scenes' reachable
@@ -57,6 +61,7 @@ class SimConfig:
                 "must be 0.25 (the grid of the scenes' reachable positions)",
             ),
             "visibility_distance": (self.visibility_distance > 0, "must be > 0"),
+            "strict_diagonals": (isinstance(self.strict_diagonals, bool), "must be true or false"),
             "ray_resolution": (
                 self.ray_resolution > 0 and self.ray_resolution % 7 == 0,
                 "must be a positive multiple of 7 (the 7x7 feature map)",

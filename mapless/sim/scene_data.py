@@ -19,6 +19,8 @@ ACTIONS: tuple[str, ...] = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", 
 MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
 N_MOVEMENT_ACTIONS = 5
 GRID_SIZE = 0.25
+#: A pose-graph component smaller than this share of the scene's largest is an island (SceneData.usable_poses).
+USABLE_COMPONENT_SHARE = 0.25
 
 
 def pose_key(x: float, z: float, yaw: int, horizon: int) -> str:
@@ -144,6 +146,42 @@ class SceneData:
         indptr = np.concatenate([[0], np.cumsum(counts)])
         indices = np.concatenate(self.predecessors) if self.n_poses else np.zeros(0, np.int64)
         return indptr, indices.astype(np.int64, copy=False)
+
+    @functools.cached_property
+    def components(self) -> np.ndarray:
+        """``[P]`` label of each pose's strongly connected component of the pose graph, numbered by
+        size (0: the largest; ties by lowest pose id). The built-in scenes' reachable grid is a
+        union of several sources, and in a few scenes it leaves islands cut off from the rest."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        src = np.repeat(np.arange(self.n_poses), self.successors.shape[1])
+        dst = self.successors.reshape(-1)
+        graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(self.n_poses,) * 2)
+        _, raw = connected_components(graph.tocsr(), directed=True, connection="strong")
+        sizes = np.bincount(raw)
+        first = np.full(len(sizes), self.n_poses)
+        np.minimum.at(first, raw, np.arange(self.n_poses))
+        order = np.lexsort((first, -sizes))  # largest first, then by first pose
+        rank = np.empty(len(sizes), dtype=np.int64)
+        rank[order] = np.arange(len(sizes))
+        return rank[raw]
+
+    @functools.cached_property
+    def usable_poses(self) -> np.ndarray:
+        """Bool ``[P]``: poses of the components an agent can use, where episodes may start.
+
+        The references generate their data by BFS from one start, so every pose of theirs lies in
+        one component. Here a component counts when it holds at least ``USABLE_COMPONENT_SHARE`` of
+        the largest one's poses: the islands of one or two positions (16 or 32 poses) that the
+        union of reachable-grid sources leaves in a few scenes are left out, while both halves of
+        FloorPlan29 (768 and 624 poses) are kept: each is a real standing area (ALFRED's AI2-THOR
+        2.1 layout holds 35 and 30 of its positions, the rearrangement-2023 AI2-THOR 5 agent starts
+        24 and 18) and no source links them. A start must in addition reach its target (samplers
+        check that per target)."""
+        sizes = np.bincount(self.components)
+        usable = sizes >= USABLE_COMPONENT_SHARE * sizes.max() if len(sizes) else sizes.astype(bool)
+        return usable[self.components]
 
     def distances_to(self, goal: np.ndarray) -> np.ndarray:
         """Reverse BFS: number of movement actions from every pose to the nearest goal pose
