@@ -249,3 +249,37 @@ def test_an_episode_naming_its_instances_measures_its_optimal_length_to_them(lib
     distances = data.distances_to(data.goal_mask_for_instances(toasters[-1:]))
     _, info = NavEnv(library, [named]).reset()
     assert info["optimal_length"] == distances[pose] + 1 >= data.optimal_length(pose, "Toaster")
+
+
+def test_progress_reward_pays_each_move_toward_the_target(library):
+    """On the optimal path every move is one action closer: +weight each, on top of SAVN's rewards."""
+    episode, pose = far_episode(library)
+    env = NavEnv(library, [episode], rewards=RewardConfig(progress_reward=0.1))
+    env.reset(seed=0)
+    actions = optimal_actions(library[SCENE], pose, "Toaster")
+    total = sum(env.step(action)[1] for action in actions)
+    moves = len(actions) - 1
+    assert total == pytest.approx(5.0 - 0.01 * moves + 0.1 * moves)
+
+
+def test_progress_reward_telescopes_to_the_change_of_distance(library):
+    """Any walk: shaped minus plain rewards = weight * (distance at the start - distance at the end)."""
+    data = library[SCENE]
+    distances = data.target_distances("Toaster")
+    starts = np.flatnonzero(distances > 0)[:: max(1, int((distances > 0).sum()) // 8)][:8]
+    episodes = [Episode(SCENE, "Toaster", data.pose_tuple(int(p))) for p in starts]
+    plain = BatchedNavEnv(library, [SCENE], len(episodes), max_steps=20)
+    shaped = BatchedNavEnv(
+        library, [SCENE], len(episodes), max_steps=20, rewards=RewardConfig(progress_reward=0.5)
+    )
+    for env in (plain, shaped):
+        env.reset(np.arange(len(episodes)), episodes)
+    rng = np.random.default_rng(0)
+    difference = np.zeros(len(episodes))
+    for _ in range(20):
+        actions = rng.integers(0, DONE, len(episodes))  # movements only: every episode runs 20 steps
+        difference += shaped.step(actions).reward - plain.step(actions).reward
+    np.testing.assert_array_equal(shaped.pose, plain.pose)
+    expected = 0.5 * (distances[starts] - distances[shaped.pose])
+    np.testing.assert_allclose(difference, expected, atol=1e-5)
+    assert np.abs(expected).max() > 0

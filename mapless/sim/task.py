@@ -27,11 +27,16 @@ class RewardConfig:
     """SAVN's rewards: ``step_penalty`` per step; ``success_reward`` replaces it on a successful
     ``Done``. With ``parent_reward`` on, the first time in an episode a parent object of the target
     comes into view, its bonus replaces the step penalty (MJOLNIR's hierarchical reward, with the
-    seen set reset at every episode start)."""
+    seen set reset at every episode start). ``progress_reward`` (0 = off, as in the references) adds,
+    at every move, that weight times the decrease of the shortest-path distance (in actions) to the
+    nearest pose that sees the target: AllenAct's geodesic-progress shaping in this pose graph's unit.
+    It is potential-based, so it telescopes to ``weight * (d_start - d_end)`` over an episode and leaves
+    the optimal policy unchanged."""
 
     step_penalty: float = -0.01
     success_reward: float = 5.0
     parent_reward: bool = False
+    progress_reward: float = 0.0
     #: Room types whose parents pay the bonus (the hierarchy ablation drops one room type).
     parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
 

@@ -91,6 +91,8 @@ class BatchedNavEnv:
         #: per slot, the BFS distance (in moves) from each of its scene's poses to the target's
         #: goal poses, for the shortest-path expert (None: unknown, e.g. instance-restricted targets)
         self._distances: list[np.ndarray | None] = [None] * b
+        #: per slot, the distances the progress reward measures (None while that reward is off)
+        self._progress_distances: list[np.ndarray | None] = [None] * b
         self.seen_parents = np.zeros((b, n_cat), dtype=bool)
         self.parent_weights = np.zeros((b, n_cat), dtype=np.float32)
         self.episodes: list[Episode | None] = [None] * b
@@ -135,6 +137,8 @@ class BatchedNavEnv:
                 optimal = d + 1 if d >= 0 else -1
             self.optimal_length[slot] = optimal
             self._distances[slot] = None if episode.target_ids else data.target_distances(episode.target)
+            if self.rewards.progress_reward:
+                self._progress_distances[slot] = self._distances_to_goal(episode)
             self.episodes[slot] = episode
 
     def _distances_to_goal(self, episode: Episode) -> np.ndarray:
@@ -166,6 +170,18 @@ class BatchedNavEnv:
                 actions[slot] = int(np.argmax(closer))
         return actions
 
+    def _progress(self, before: np.ndarray, after: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """Per slot, how many actions closer to the target the last move brought the agent (0 where
+        it did not move or either pose cannot reach the target)."""
+        progress = np.zeros(self.batch_size, dtype=np.float32)
+        for slot in np.flatnonzero(moving & (before != after)):
+            offset = self.scene_offset[self.episodes[slot].scene]
+            distances = self._progress_distances[slot]
+            d_before, d_after = distances[before[slot] - offset], distances[after[slot] - offset]
+            if d_before >= 0 and d_after >= 0:
+                progress[slot] = d_before - d_after
+        return progress
+
     def at_goal(self) -> np.ndarray:
         keys = self.goal * self.n_poses + self.pose
         found = np.searchsorted(self._goal_keys, keys)
@@ -188,6 +204,8 @@ class BatchedNavEnv:
             in_view = (self.context[after, :, 0] > 0) & moving[:, None]
             bonus, self.seen_parents = parent_reward(in_view, self.parent_weights, self.seen_parents)
             reward = np.where(bonus > 0, bonus, reward).astype(np.float32)
+        if self.rewards.progress_reward:
+            reward += self.rewards.progress_reward * self._progress(before, after, moving)
         reward[~active] = 0.0
         self.steps += active
         truncated = active & ~is_done & (self.steps >= self.max_steps)

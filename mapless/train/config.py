@@ -37,6 +37,8 @@ class EnvConfig:
         ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off otherwise.
     parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
     step_penalty, success_reward: SAVN's rewards.
+    progress_reward: weight of the geodesic-progress shaping (:class:`~mapless.sim.task.RewardConfig`;
+        0 = off, the paper's protocol; docs/learning.md measures it).
     max_steps: training episode limit (30 in both references).
     cache_dir: cache root, as $MAPLESS_CACHE (scenes go in ``<cache_dir>/scenes/``; None = $MAPLESS_CACHE
         or ~/.cache/mapless).
@@ -51,6 +53,7 @@ class EnvConfig:
     parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
     step_penalty: float = -0.01
     success_reward: float = 5.0
+    progress_reward: float = 0.0
     max_steps: int = TRAIN_MAX_STEPS
     cache_dir: str | None = None
     offline_dir: str | None = None
@@ -67,8 +70,11 @@ class EnvConfig:
         except KeyError as error:
             raise ConfigError(f"config key 'env.target_set': {error}") from None
         _require(self.max_steps > 0, "env.max_steps", f"must be positive, got {self.max_steps}")
-        for key in ("step_penalty", "success_reward"):
+        for key in ("step_penalty", "success_reward", "progress_reward"):
             _require(_finite(getattr(self, key)), f"env.{key}", f"must be finite, got {getattr(self, key)}")
+        _require(
+            self.progress_reward >= 0, "env.progress_reward", f"must be >= 0, got {self.progress_reward}"
+        )
         unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
         _require(
             not unknown_rooms,
