@@ -133,9 +133,10 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
     assert torch.allclose(values[mask], segment.values[:steps][mask], atol=1e-5)
 
 
-def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones() -> None:
+@pytest.mark.parametrize("model", ["savn", "cvmeta"])
+def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones(model: str) -> None:
     trainer = PPOTrainer(
-        tiny_config("savn", "algo=ppo", "ppo.envs=3", "ppo.minibatches=1", "frames=100"),
+        tiny_config(model, "algo=ppo", "ppo.envs=3", "ppo.minibatches=1", "frames=100"),
         None,
         fixture_library,
     )
