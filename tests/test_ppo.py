@@ -108,12 +108,18 @@ def test_segment_replay_equals_stepping_the_model_with_resets(name: str) -> None
     assert not torch.allclose(again[1, 2], logits[1, 2])
 
 
-@pytest.mark.parametrize("model", ["a3c", "savn"])
+@pytest.mark.parametrize("model", ["a3c", "savn", "cvmeta"])
 def test_replay_reproduces_the_acting_policy(model: str) -> None:
     """With the parameters that acted, every replayed log-probability is the recorded one (ratio 1):
-    segments with episode starts inside them, and whole episodes through the inner loop."""
+    segments with episode starts inside them, and whole episodes through the inner loop. A large inner
+    learning rate makes every difference in how acting and replay adapt visible (acting once cut the
+    recurrence at every step where the inner loop cuts it at chunk starts: values then differed by
+    1e-2)."""
+    adapt = [] if model == "a3c" else ["model.inner_lr=0.1"]
     trainer = PPOTrainer(
-        tiny_config(model, "algo=ppo", "ppo.envs=4", "ppo.steps=12", "frames=100"), None, fixture_library
+        tiny_config(model, "algo=ppo", "ppo.envs=4", "ppo.steps=12", "frames=100", *adapt),
+        None,
+        fixture_library,
     )
     trainer._setup(None)
     segment = trainer.collector.collect(12 if model == "a3c" else 8, trainer.rng)

@@ -115,7 +115,7 @@ class SegmentCollector:
             "steps": torch.as_tensor(env.steps),
             "done": torch.as_tensor(env.done),
             "seen_parents": torch.as_tensor(env.seen_parents),
-            "hidden": [t.cpu() for t in self.hidden],
+            "hidden": [t.detach().cpu() for t in self.hidden],
             "prev_policy": self.prev_policy.cpu(),
             "reward_sum": torch.as_tensor(self.reward_sum),
             "needs_episode": torch.as_tensor(self.needs_episode),
@@ -151,7 +151,7 @@ class SegmentCollector:
             self.needs_episode[:] = True
         memo = InViewMemo(max_rows=None)
         actor = _AdaptingActor(self.model, n) if self.whole_episodes else None
-        h0 = tuple(t.clone() for t in self.hidden)
+        h0 = tuple(t.detach().clone() for t in self.hidden)
         record: dict[str, list] = {k: [] for k in _RECORDED}
         finished: list[tuple[bool, float, int, float]] = []
         try:
@@ -193,7 +193,9 @@ class SegmentCollector:
             expert = env.expert_actions() if self.expert else np.full(n, -1)
             step = env.step(action.cpu().numpy())
             bootstrap = torch.zeros(n, device=device)
-            hidden = tuple(t.detach() for t in out.hidden)
+            # The inner loop's test-time steps differentiate through the recurrence back to the start
+            # of their chunk (it cuts the graph there itself), as the replay and the evaluator do.
+            hidden = out.hidden if actor is not None else tuple(t.detach() for t in out.hidden)
             policy = torch.softmax(logits, dim=-1)
             if actor is not None:
                 actor.observe(out, torch.as_tensor(~env.done, device=device))
