@@ -330,3 +330,32 @@ def test_pointwise_conv_of_parts_equals_the_conv_of_the_concatenation_to_second_
     got = torch.autograd.grad(loss(parts), inputs)
     for g, e in zip(got, expected, strict=True):
         torch.testing.assert_close(g, e)
+
+
+@pytest.mark.parametrize("name", [n for n in ALL if n not in ("random", "mlp")])
+def test_target_context_reaches_every_model_through_the_targets_own_row(name, tiny):
+    """``model.target_context`` gives every model the target's own context row: the outputs move when
+    only that row changes, through the parameters the option adds (off: models that read no context
+    rows do not move at all)."""
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(3)
+    obs = synthetic_observations(2, tiny, generator=gen)
+    obs["target_index"] = torch.tensor([1, 4])
+    moved = {k: v.clone() for k, v in obs.items()}
+    moved["context"][torch.arange(2), obs["target_index"]] += torch.tensor([1.0, 0.3, -0.2, 0.5])
+    args = lambda o: (o, (torch.zeros(2, 24), torch.zeros(2, 24)), torch.full((2, 6), 1 / 6))  # noqa: E731
+    with_row = build_model(name, knowledge=tiny, hidden_size=24, target_context=True).eval()
+    with torch.no_grad():  # away from the initialisation, where spatt's attention ignores its queries
+        for p in with_row.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=gen))
+    out, out_moved = with_row(*args(obs)), with_row(*args(moved))
+    assert not torch.allclose(out.value, out_moved.value)
+    (out.value.sum() + out.logits.sum()).backward()
+    if name == "mjolnir_o":  # no target descriptor: the row is the LSTM input's last 4 columns
+        assert with_row.lstm.weight_ih.grad[:, -4:].abs().sum() > 0
+    else:
+        assert with_row.embed_target_context.weight.grad.abs().sum() > 0
+    without = build_model(name, knowledge=tiny, hidden_size=24).eval()
+    assert not any("target_context" in n for n, _ in without.named_parameters())
+    if name in ("a3c", "savn"):  # they read the feature map only, never a context row
+        assert torch.equal(without(*args(obs)).value, without(*args(moved)).value)

@@ -25,6 +25,7 @@ from mapless.models.base import (
     glorot_init,
     init_heads_and_lstm,
     pointwise_conv,
+    target_context_input,
     tile,
 )
 from mapless.models.dropout import Dropout
@@ -37,7 +38,7 @@ BASE_EMBEDDING = EMBED * GRID * GRID  # 3136
 #: The roles of what :class:`SavnEmbeddingMixin` builds, the recurrent core included: the visual and
 #: target embeddings are the encoders, the previous-action embedding and the fusion the policy.
 SAVN_EMBEDDING_ROLES = RECURRENT_CORE_ROLES | ParameterRoles(
-    encoder=("conv1", "embed_glove"),
+    encoder=("conv1", "embed_glove", "embed_target_context"),
     policy=("embed_action", "pointwise"),
     outer_only=("action_predict_linear",),
 )
@@ -49,13 +50,18 @@ class SavnEmbeddingMixin:
     def _build_base_embedding(self) -> None:
         self.conv1 = nn.Conv2d(self.feature_channels, EMBED, 1)
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
+        if self.config.target_context:
+            self.embed_target_context = nn.Linear(4, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv2d(EMBED + EMBED + 10, EMBED, 1)
         self.dropout = Dropout(self.config.dropout)
 
     def _base_embedding(self, obs: dict[str, Tensor], prev_policy: Tensor) -> Tensor:
         image = self.dropout(F.relu(pointwise_conv(self.conv1, obs["features"])))
-        glove = tile(F.relu(self.embed_glove(obs["target_embedding"])), GRID, GRID)
+        target = self.embed_glove(obs["target_embedding"])
+        if self.config.target_context:
+            target = target + target_context_input(obs, self.embed_target_context)
+        glove = tile(F.relu(target), GRID, GRID)
         action = tile(F.relu(self.embed_action(prev_policy)), GRID, GRID)
         x = torch.cat([image, glove, action], dim=1)
         return self.dropout(F.relu(pointwise_conv(self.pointwise, x))).flatten(1)

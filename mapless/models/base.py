@@ -67,10 +67,12 @@ class ModelConfig:
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
         that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
-    target_context: cvmeta only: the target descriptor also reads the target category's own
-        context row ``[B, x_c, y_c, A_bbox]`` (``ψ(g, C_g; u)``), so "the target is in view, there, this
-        large" is one shared input instead of a rule learned per category from the CS column. Not in
-        the paper; off reproduces it (docs/model.md, "Target context").
+    target_context: the target descriptor also reads the target category's own context row
+        ``[B, x_c, y_c, A_bbox]`` (cvmeta: ``ψ(g, C_g; u)``; a3c, sp, savn, gve, mjolnir_r: the GloVe
+        embedding of SAVN's state embedding; spatt: the target query; mjolnir_o, which has no target
+        descriptor: the row joins its LSTM input), so "the target is in view, there, this large" is
+        one shared input instead of a rule learned per category from the CS column or the feature
+        map. Not in any of the papers; off reproduces them (docs/model.md, "Target context").
     reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
         ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
         parameter counts and state-dict keys match the originals. They never affect outputs.
@@ -372,6 +374,14 @@ def target_row(context: Tensor, target_index: Tensor) -> Tensor:
     index = target_index.clamp(min=0).view(-1, 1, 1).expand(-1, 1, context.shape[-1])
     row = context.gather(1, index).squeeze(1)
     return row * (target_index >= 0).to(row.dtype).unsqueeze(-1)
+
+
+def target_context_input(obs: dict[str, Tensor], layer: nn.Module) -> Tensor:
+    """``model.target_context``'s term of a target descriptor: ``layer`` (4 -> the descriptor's width)
+    of the target category's own context row, added to the descriptor's GloVe term before its
+    activation (docs/model.md, "Target context")."""
+    row = target_row(obs["context"], obs["target_index"])
+    return layer(row.unsqueeze(-1)).squeeze(-1) if isinstance(layer, nn.Conv1d) else layer(row)
 
 
 def context_vector(obs: dict[str, Tensor], category_glove: Tensor) -> Tensor:

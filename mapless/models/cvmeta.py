@@ -41,7 +41,7 @@ from mapless.models.base import (
     pointwise_conv_of_parts,
     shared_gcn_term,
     shared_row_gcn_layer,
-    target_row,
+    target_context_input,
 )
 from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
@@ -108,7 +108,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         graph = self.graph_descriptor(obs["context"][..., 0])
         target = self.embed_glove(obs["target_embedding"])
         if self.config.target_context:
-            target = target + self.embed_target_context(target_row(obs["context"], obs["target_index"]))
+            target = target + target_context_input(obs, self.embed_target_context)
         target = F.relu(target)
         return {"context": context, "graph": graph, "target": target}
 

@@ -25,6 +25,7 @@ from mapless.models.base import (
     normalized_adjacency_parameter,
     shared_gcn_term,
     shared_row_gcn_layer,
+    target_row,
 )
 from mapless.models.roles import ParameterRoles
 
@@ -70,14 +71,18 @@ class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
         super().__init__(config, knowledge)
         self._build_object_gcn()
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
-        self._finish_init(5 * self.num_categories + 10 + GCN_EMBEDDING)
+        # target_context: no target descriptor to put the row in, so it joins the LSTM input.
+        self._finish_init(5 * self.num_categories + 10 + GCN_EMBEDDING + 4 * config.target_context)
 
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
         cm = context_vector(obs, self.all_glove)
         action = F.relu(self.embed_action(prev_policy))
-        return torch.cat([cm.flatten(1), action, self._object_gcn(cm)], dim=1), None
+        parts = [cm.flatten(1), action, self._object_gcn(cm)]
+        if self.config.target_context:
+            parts.append(target_row(obs["context"], obs["target_index"]))
+        return torch.cat(parts, dim=1), None
 
 
 class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):

@@ -25,6 +25,7 @@ from mapless.models.base import (
     glorot_init,
     init_heads_and_lstm,
     pointwise_conv,
+    target_context_input,
     unit,
 )
 from mapless.models.dropout import Dropout
@@ -39,7 +40,8 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         RECURRENT_CORE_ROLES
         | LEARNED_LOSS_ROLES
         | ParameterRoles(
-            encoder=("embed_state", "embed_glove", "embed_memory", "memory_alpha"), policy=("embed_action",)
+            encoder=("embed_state", "embed_glove", "embed_target_context", "embed_memory", "memory_alpha"),
+            policy=("embed_action",),
         )
     )
 
@@ -49,6 +51,8 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         # 1x1 Conv1d layers (not Linear) keep the original checkpoint's weight shapes (out, in, 1).
         self.embed_state = nn.Conv1d(self.feature_channels, EMBED, 1)
         self.embed_glove = nn.Conv1d(self.glove_dim, EMBED, 1)
+        if config.target_context:
+            self.embed_target_context = nn.Conv1d(4, EMBED, 1)
         self.embed_action = nn.Conv1d(NUM_ACTIONS, EMBED, 1)
         self.embed_memory = nn.Conv1d(hidden, EMBED, 1)
         self.memory_alpha = nn.Conv1d(hidden, 3, 1)
@@ -64,6 +68,12 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
     def _query(layer: nn.Conv1d, vector: Tensor) -> Tensor:
         return unit(pointwise_conv(layer, vector.unsqueeze(-1)).squeeze(-1))
 
+    def _target_query(self, obs: dict[str, Tensor]) -> Tensor:
+        if not self.config.target_context:
+            return self._query(self.embed_glove, obs["target_embedding"])
+        target = pointwise_conv(self.embed_glove, obs["target_embedding"].unsqueeze(-1)).squeeze(-1)
+        return unit(target + target_context_input(obs, self.embed_target_context))
+
     def attention(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor]:
@@ -73,7 +83,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         keys = self.dropout(unit(cells, dim=1))
         queries = torch.stack(
             [
-                self._query(self.embed_glove, obs["target_embedding"]),
+                self._target_query(obs),
                 self._query(self.embed_memory, h_prev),
                 self._query(self.embed_action, prev_policy),
             ],
