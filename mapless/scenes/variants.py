@@ -220,3 +220,68 @@ def apply_arrangement(scene: Scene, arrangement: Arrangement, name: str) -> Scen
             )
         objects[i] = dataclasses.replace(objects[i], parents=parents)
     return dataclasses.replace(scene, name=name, objects=tuple(objects))
+
+
+def variants_of(floor_plan: str, source: str, count: int) -> list[str]:
+    """The first ``count`` usable variants of ``floor_plan`` from ``source``: generator seeds 0, 1, ...,
+    or the source's episodes in order, skipping those that cannot be applied (a few of the dataset's
+    arrangements drop an object through the floor); fewer when the source runs out."""
+    names: list[str] = []
+    if source == GENERATED:
+        return [f"{floor_plan_of(floor_plan)}@{GENERATED}:{i}" for i in range(count)]
+    from mapless.scenes.arrangements import episode_count
+
+    for index in range(episode_count(source, floor_plan_of(floor_plan))):
+        if len(names) == count:
+            break
+        name = f"{floor_plan_of(floor_plan)}@{source}:{index}"
+        try:
+            load_variant(name)
+        except MaplessError:
+            continue
+        names.append(name)
+    return names
+
+
+def source_facts(source: str, phase: str = "target") -> dict:
+    """Measured facts about an arrangement source's ``phase`` arrangements against the default layouts:
+    how many there are and apply, the share of listed objects whose pivot sits more than 0.5 m from its
+    default, the share of pickupable objects each leaves out (removed), and the share of (floor plan,
+    pickupable type) pairs that no arrangement of that floor plan lists."""
+    from mapless.scenes.arrangements import read_rearrangement
+
+    data = read_rearrangement(source)
+    counts = {"arrangements": 0, "applicable": 0, "listed": 0, "moved_05": 0, "slots": 0, "removed": 0}
+    type_pairs, absent_pairs = 0, 0
+    for floor_plan in sorted(data):
+        scene, defaults = load_scene(floor_plan), default_poses(floor_plan)
+        pickupable = [o for o in scene.objects if o.pickupable]
+        listed_types: set[str] = set()
+        for index in range(len(data[floor_plan])):
+            arrangement = arrangement_of(source, floor_plan, index, phase)
+            names = {p.name for p in arrangement.poses}
+            counts["arrangements"] += 1
+            counts["slots"] += len(pickupable)
+            counts["removed"] += sum(o.name not in names for o in pickupable)
+            listed_types |= {o.type for o in pickupable if o.name in names}
+            for pose in arrangement.poses:
+                if pose.name in defaults:
+                    counts["listed"] += 1
+                    counts["moved_05"] += (
+                        np.linalg.norm(np.subtract(pose.position, defaults[pose.name][:3])) > 0.5
+                    )
+            try:
+                apply_arrangement(scene, arrangement, f"{floor_plan}@{source}:{index}")
+                counts["applicable"] += 1
+            except MaplessError:
+                pass
+        types = {o.type for o in pickupable}
+        type_pairs += len(types)
+        absent_pairs += len(types - listed_types)
+    return {
+        "floor_plans": len(data),
+        **counts,
+        "moved_share": counts["moved_05"] / max(counts["listed"], 1),
+        "removed_share": counts["removed"] / max(counts["slots"], 1),
+        "absent_type_share": absent_pairs / max(type_pairs, 1),
+    }
