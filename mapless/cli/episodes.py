@@ -31,6 +31,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     make.add_argument(
         "--check", action="store_true", help="also compare with the built-in files byte for byte"
     )
+    make.add_argument(
+        "--layouts",
+        help="SOURCE:PER_SCENE: a layout-shift set, each episode on one of its floor plan's first PER_SCENE "
+        "variants from SOURCE (gen: generated arrangements; rearrange2023; or an arrangement file in the "
+        "rearrangement dataset's format), e.g. --splits test --layouts gen:3 (docs/simulator.md)",
+    )
     add_sim_arguments(make)
     make.set_defaults(func=_make)
 
@@ -57,12 +63,15 @@ def _make(args: argparse.Namespace) -> int:
             raise MaplessError(f"no evaluation split {split!r}; choose from {evalsets.EVAL_SPLITS}")
         config = protocol_of_split(split).sim(base)
         library = libraries.setdefault(config, SceneLibrary.builtin(config, args.cache_dir))
-        episodes = evalsets.make_eval_set(library, split, args.target_set, args.per_room, args.seed)
-        path = args.out / f"{split}_{args.target_set}.json.gz"
-        evalsets.save(path, episodes, split, args.target_set, args.seed, fingerprint(config))
+        episodes = evalsets.make_eval_set(
+            library, split, args.target_set, args.per_room, args.seed, layouts=args.layouts
+        )
+        label = f"{split}_{evalsets.layouts_label(args.layouts)}" if args.layouts else split
+        path = args.out / f"{label}_{args.target_set}.json.gz"
+        evalsets.save(path, episodes, split, args.target_set, args.seed, fingerprint(config), args.layouts)
         print(f"wrote {path}: {len(episodes)} episodes")
         if args.check:
-            builtin = evalsets.builtin_path(split, args.target_set)
+            builtin = evalsets.builtin_path(split, args.target_set, args.layouts)
             same = builtin.is_file() and path.read_bytes() == builtin.read_bytes()
             print(f"  identical to the built-in {split} set: {same}")
             mismatches += not same

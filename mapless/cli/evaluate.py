@@ -11,6 +11,7 @@ from pathlib import Path
 from mapless.cli.common import positive_int
 from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
+from mapless.experiments.config import EXPERIMENTS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -65,9 +66,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rep = subparsers.add_parser(
         "reproduce",
         help="train, select, evaluate and report one of the paper's experiments",
-        description="Experiments: table1, table2, table3, figure3, figures45. Writes reports/EXPERIMENT/.",
+        description="Experiments: table1, table2, table3, figure3, figures45, layout_shift. Writes "
+        "reports/EXPERIMENT/.",
     )
-    rep.add_argument("experiment", choices=("table1", "table2", "table3", "figure3", "figures45"))
+    rep.add_argument("experiment", choices=EXPERIMENTS)
     rep.add_argument("--budget", choices=("smoke", "small", "full"), default="smoke")
     rep.add_argument("--seeds", type=positive_int, help="training seeds per run (overrides the config)")
     rep.add_argument(

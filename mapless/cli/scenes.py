@@ -64,6 +64,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_sim_arguments(check)
     check.set_defaults(func=_check)
 
+    variants = sub.add_parser(
+        "variants",
+        help='facts about an arrangement source against the default layouts (docs/simulator.md, "Scene variants")',
+    )
+    variants.add_argument(
+        "source", nargs="?", default="rearrange2023", help="rearrange2023 or an arrangement file"
+    )
+    variants.add_argument("--phase", choices=("target", "start"), default="target")
+    variants.set_defaults(func=_variants)
+
     target_parser = sub.add_parser("targets", help="how many scenes of each split contain each target")
     target_parser.add_argument("--target-set", default="mjolnir22")
     target_parser.set_defaults(func=_targets)
@@ -206,6 +216,28 @@ def _detour_ratio(data) -> float:
     euclid = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
     ok = np.isfinite(geodesic) & (euclid > 0)
     return float(np.median(geodesic[ok] / euclid[ok])) if ok.any() else float("nan")
+
+
+def _variants(args: argparse.Namespace) -> int:
+    from mapless.scenes.variants import source_facts
+
+    f = source_facts(args.source, args.phase)
+    print(
+        f"{args.source} ({args.phase} arrangements): {f['arrangements']} arrangements of {f['floor_plans']} floor plans"
+    )
+    print(
+        f"  apply without error: {f['applicable']} ({f['applicable'] / max(f['arrangements'], 1):.1%}); the rest place an object off every surface"
+    )
+    print(
+        f"  listed objects more than 0.5 m from their default pivot: {f['moved_05']} of {f['listed']} ({f['moved_share']:.1%})"
+    )
+    print(
+        f"  pickupable objects an arrangement leaves out (removed): {f['removed']} of {f['slots']} ({f['removed_share']:.1%})"
+    )
+    print(
+        f"  pickupable types of a floor plan that none of its arrangements lists: {f['absent_type_share']:.1%}"
+    )
+    return 0
 
 
 def _targets(args: argparse.Namespace) -> int:

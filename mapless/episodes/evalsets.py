@@ -9,6 +9,11 @@ see the target; the ``reference`` protocol's sets (``ref_val``, ``ref_test``) al
 references' published sets do. The optimal length (actions including ``Done``) is stored. The file
 records the simulator fingerprint it was made with; loading it under other simulator parameters is
 an error, since lengths would differ.
+
+Layout-shift sets (``layouts="gen:3"``: SOURCE:PER_SCENE) play the split's floor plans under other
+arrangements: after the floor plan, one more draw picks one of its first PER_SCENE variants from
+SOURCE (mapless.scenes.variants.variants_of), uniformly; the rest is as above, on the variant. The
+file records ``layouts``; the built-in ``test`` set under ``gen:3`` is ``test_gen3_<targets>``.
 """
 
 from __future__ import annotations
@@ -41,8 +46,10 @@ def make_eval_set(
     per_room: int = 250,
     seed: int = 0,
     room_types: tuple[str, ...] = ROOM_TYPES,
+    layouts: str | None = None,
 ) -> list[Episode]:
     room_targets = targets(target_set)
+    source, per_scene = parse_layouts(layouts) if layouts else (None, 0)
     protocol = protocol_of_split(split)
     # A start that already sees the target has distance 0: allowed only where the protocol says so.
     nearest = 0 if protocol.visible_starts else 1
@@ -57,6 +64,9 @@ def make_eval_set(
             if attempts > 200 * per_room:
                 raise MaplessError(f"could not make {per_room} valid {room} episodes for split {split}")
             scene = scenes[rng.integers(len(scenes))]
+            if source is not None:
+                variants = _variants(scene, source, per_scene)
+                scene = variants[rng.integers(len(variants))]
             data = library[scene]
             _, visible = data.visible_matrix_csr
             types = [data.instance_types[i] for i in np.unique(visible)]
@@ -84,7 +94,38 @@ def make_eval_set(
     return episodes
 
 
-def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str) -> bytes:
+def parse_layouts(layouts: str) -> tuple[str, int]:
+    """``"gen:3"`` -> ``("gen", 3)``: an arrangement source and how many variants per floor plan."""
+    source, _, count = layouts.rpartition(":")
+    if not source or not count.isdigit() or int(count) < 1:
+        raise MaplessError(f"layouts {layouts!r}: expected SOURCE:PER_SCENE, e.g. gen:3 or rearrange2023:5")
+    return source, int(count)
+
+
+def _variants(scene: str, source: str, per_scene: int) -> list[str]:
+    from mapless.scenes.variants import variants_of
+
+    names = variants_of(scene, source, per_scene)
+    if not names:
+        raise MaplessError(f"arrangement source {source!r} has no usable arrangement of {scene}")
+    return names
+
+
+def layouts_label(layouts: str) -> str:
+    """File-name label of a layout-shift set: ``gen:3`` -> ``gen3``, ``/x/val.pkl.gz:5`` -> ``val5``."""
+    source, count = parse_layouts(layouts)
+    stem = Path(source).name.split(".")[0] if source not in ("gen", "rearrange2023") else source
+    return "".join(c for c in stem if c.isalnum() or c in "-_") + str(count)
+
+
+def dumps(
+    episodes: list[Episode],
+    split: str,
+    target_set: str,
+    seed: int,
+    sim_fingerprint: str,
+    layouts: str | None = None,
+) -> bytes:
     """Canonical bytes (sorted keys, gzip without timestamp) so regeneration is bit-for-bit."""
     payload = {
         "format": FORMAT,
@@ -95,6 +136,8 @@ def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_f
         "sim_fingerprint": sim_fingerprint,
         "episodes": [e.to_dict() for e in episodes],
     }
+    if layouts:  # only then: the default sets' bytes stay what they were
+        payload["layouts"] = layouts
     text = json.dumps(payload, sort_keys=True, indent=0).encode()
     buffer = io.BytesIO()
     with gzip.GzipFile(fileobj=buffer, mode="wb", mtime=0, compresslevel=9) as f:
@@ -103,9 +146,15 @@ def dumps(episodes: list[Episode], split: str, target_set: str, seed: int, sim_f
 
 
 def save(
-    path: Path, episodes: list[Episode], split: str, target_set: str, seed: int, sim_fingerprint: str
+    path: Path,
+    episodes: list[Episode],
+    split: str,
+    target_set: str,
+    seed: int,
+    sim_fingerprint: str,
+    layouts: str | None = None,
 ) -> None:
-    write_bytes(path, dumps(episodes, split, target_set, seed, sim_fingerprint))
+    write_bytes(path, dumps(episodes, split, target_set, seed, sim_fingerprint, layouts))
 
 
 def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[list[Episode], dict]:
@@ -136,7 +185,8 @@ def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[lis
     return episodes, header
 
 
-def builtin_path(split: str, target_set: str = "mjolnir22") -> Path:
+def builtin_path(split: str, target_set: str = "mjolnir22", layouts: str | None = None) -> Path:
     if split not in EVAL_SPLITS:
         raise MaplessError(f"no built-in episode set for split {split!r}; choose one of {EVAL_SPLITS}")
-    return Path(str(resources.files("mapless.data").joinpath(f"episodes/{split}_{target_set}.json.gz")))
+    name = f"{split}_{layouts_label(layouts)}" if layouts else split
+    return Path(str(resources.files("mapless.data").joinpath(f"episodes/{name}_{target_set}.json.gz")))

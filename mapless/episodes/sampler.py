@@ -13,6 +13,10 @@ so with a visible target drawn, no start is unwinnable. Here a few scenes have p
 (``SceneData.usable_poses``), so the start is drawn uniformly over the usable horizon-0 poses from
 which the target is reachable: in a scene without islands those are all its horizon-0 poses, and
 the draws are the references' (and those of earlier versions of this sampler) exactly.
+
+With scene variants (``env.layouts``), step 2 is followed by one more draw: with probability
+``variant_fraction`` the episode is played on one of the floor plan's variants, uniformly. Without
+them no draw is added, so the default-arrangement protocol samples what it always sampled.
 """
 
 from __future__ import annotations
@@ -32,8 +36,12 @@ class TrainingSampler:
         scenes: list[str],
         target_set: str = "mjolnir22",
         seed: int = 0,
+        variants: dict[str, list[str]] | None = None,
+        variant_fraction: float = 0.0,
     ):
         self.library = library
+        self.variants = {s: v for s, v in (variants or {}).items() if v}
+        self.variant_fraction = variant_fraction if self.variants else 0.0
         self.targets = targets(target_set)
         self.scenes_by_room = {r: [s for s in scenes if room_type_of(s) == r] for r in ROOM_TYPES}
         self.room_cycle = [r for r in ROOM_TYPES if self.scenes_by_room[r]]
@@ -71,6 +79,8 @@ class TrainingSampler:
         scenes = self.scenes_by_room[room]
         for _ in range(100):
             scene = scenes[rng.integers(len(scenes))]
+            if self.variant_fraction and scene in self.variants and rng.random() < self.variant_fraction:
+                scene = self.variants[scene][rng.integers(len(self.variants[scene]))]
             types = self._target_instances(scene)
             if len(types) == 0:
                 continue

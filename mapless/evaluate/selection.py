@@ -32,15 +32,24 @@ def load_episodes(
     rooms: Sequence[str] = ROOM_TYPES,
     library: LibrarySpec | None = None,
     target_set: str = "mjolnir22",
+    layouts: str | None = None,
 ) -> list[Episode]:
-    """The fixed episodes of ``split`` (built-in set of ``target_set`` unless ``episodes_file``),
+    """The fixed episodes of ``split`` (built-in set of ``target_set`` unless ``episodes_file``; with
+    ``layouts`` the layout-shift set, made on the spot when not shipped),
     keeping the first ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small
     budgets evaluate a subset of the very episodes the full budget uses.
 
     With a built-in simulator ``library``, a file made under other simulator settings is refused: its
     shortest paths (SPL, the L>=5 split) and its "target not yet visible" starts would be wrong there.
     """
-    path = Path(episodes_file) if episodes_file else evalsets.builtin_path(split, target_set)
+    path = Path(episodes_file) if episodes_file else evalsets.builtin_path(split, target_set, layouts)
+    if layouts and not episodes_file and not path.exists() and library is not None:
+        # A layout-shift set not shipped: made here, as `mapless episodes make --layouts` makes it (its
+        # first per_room episodes of each room type are those of the full set: each room draws alone).
+        made = evalsets.make_eval_set(
+            library.build(), split, target_set, per_room or 250, layouts=layouts, room_types=tuple(rooms)
+        )
+        return first_per_room(made, per_room, rooms, source=f"the {split} set under layouts {layouts}")
     if not path.exists():
         raise MaplessError(
             f"no episode file {path}; make the fixed sets with "

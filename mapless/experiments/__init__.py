@@ -10,6 +10,8 @@ selects checkpoints (``standard`` protocol: on val, reported once on test), eval
 * ``table3``: ablation: cvmeta without the hierarchical relationships (the target->parent graph
   edges) of one room type at a time, next to the full model.
 * ``figure3``: ratio-of-exploration curves of the Table 1 models.
+* ``layout_shift``: the Table 1 models trained on default arrangements and on scene variants, each
+  tested on the test floor plans under default and under other arrangements (layout_shift.py).
 * ``figures45``: top-down trajectories of the Table 1 models on one episode where the focus model
   succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF.
 

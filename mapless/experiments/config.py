@@ -14,7 +14,7 @@ from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
 
-EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45")
+EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45", "layout_shift")
 BUDGETS = ("smoke", "small", "full")
 ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
 
@@ -29,6 +29,10 @@ class ExperimentEval:
     per_room: the first N episodes per room type of the fixed sets (250 = all).
     select: evaluate every checkpoint and select (False: the final model only).
     select_file / report_file: episode files replacing the built-in val / test sets (tests).
+    shift_layouts: the layout-shift experiment's arrangements of the report split (SOURCE:PER_SCENE,
+        mapless.episodes.evalsets; ``gen:3``: three generated arrangements per test floor plan).
+    shift_file: an episode file replacing that set, e.g. one made on one's own arrangement files
+        with ``mapless episodes make --splits test --layouts FILE:N``.
     """
 
     protocol: Literal["standard", "paper", "reference"] = "standard"
@@ -37,6 +41,8 @@ class ExperimentEval:
     select: bool = True
     select_file: str | None = None
     report_file: str | None = None
+    shift_layouts: str = "gen:3"
+    shift_file: str | None = None
     batch_size: int = 32
     workers: int = 2
     seed: int = 0
@@ -47,6 +53,12 @@ class ExperimentEval:
             value = getattr(self, key)
             if not isinstance(value, int) or value < 1:
                 raise ConfigError(f"config key 'eval.{key}': must be an integer >= 1, got {value!r}")
+        from mapless.episodes.evalsets import parse_layouts
+
+        try:
+            parse_layouts(self.shift_layouts)
+        except MaplessError as error:
+            raise ConfigError(f"config key 'eval.shift_layouts': {error}") from None
 
 
 @dataclass(frozen=True)
@@ -62,6 +74,8 @@ class ExperimentConfig:
     runs_dir: where training runs go (shared between experiments).
     single_room_scenes: Table 2's training scenes per room type (default ``train:<room>``, the 20
         training floor plans of the room).
+    variant_layouts: the layout-shift experiment's second row: ``train.env.layouts`` of the runs
+        trained on scene variants (mapless.train.config.LayoutsConfig).
     """
 
     experiment: str = "table1"
@@ -76,6 +90,7 @@ class ExperimentConfig:
     runs_dir: str = "runs/experiments"
     gif: bool = True
     single_room_scenes: dict = field(default_factory=dict)
+    variant_layouts: dict = field(default_factory=lambda: {"source": "rearrange2023", "fraction": 0.5})
 
     def __post_init__(self) -> None:
         if self.experiment not in EXPERIMENTS:
@@ -116,6 +131,8 @@ def load_experiment(
         raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
     for model in {*config.models, config.focus} - {"random"}:  # every run's config, before any work
         train_config(config, model, 1)
+        if config.experiment == "layout_shift":
+            train_config(config, model, 1, {"env": {"layouts": config.variant_layouts}})
     return config
 
 

@@ -4,6 +4,7 @@ trained runs with checkpoint selection."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +15,7 @@ from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
 from mapless.evaluate.selection import load_episodes, select_and_report
 from mapless.experiments.config import ExperimentConfig, train_config
+from mapless.sim.episode import Episode
 
 
 def experiment_scenes(config: ExperimentConfig) -> tuple[LibrarySpec, str]:
@@ -44,6 +46,33 @@ class Evaluator:
             if protocol.select_split == protocol.report_split
             else load_episodes(protocol.report_split, e.report_file, **sets)
         )
+
+    @functools.cached_property
+    def shift_episodes(self) -> list[Episode]:
+        """The report split under other arrangements (the layout-shift experiment): ``eval.shift_file``,
+        else the ``eval.shift_layouts`` set, shipped or made on the spot."""
+        e = self.config.eval
+        split = get_protocol(e.protocol).report_split
+        target_set = experiment_scenes(self.config)[1]
+        return load_episodes(
+            split, e.shift_file, e.per_room, e.rooms, self.scenes, target_set,
+            layouts=None if e.shift_file else e.shift_layouts,
+        )  # fmt: skip
+
+    def chosen_model(self, run_dir: Path, info: dict) -> str:
+        """The model file :meth:`trained` reported with: the selected snapshot, or the final model."""
+        if "selection" in info:
+            return info["selection"]["chosen"]
+        from mapless.checkpoint import resolve_model_file
+
+        return str(resolve_model_file(run_dir))
+
+    def on(self, episodes: list[Episode], model: str, train_cfg=None, checkpoint: str | None = None) -> list[EpisodeResult]:
+        """One agent (an untrained ``model``, or a ``checkpoint`` of a run) on other ``episodes``."""
+        if checkpoint is None:
+            return evaluate(AgentSpec(model={"name": model}), episodes, self.settings, self.scenes).results
+        settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
+        return evaluate(AgentSpec(checkpoint=checkpoint), episodes, settings, self.library(train_cfg)).results
 
     def library(self, train_cfg) -> LibrarySpec:
         """A run's scenes; they must be the experiment's, which its episode sets were checked against."""

@@ -26,6 +26,7 @@ from mapless.evaluate.report import (
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
+from mapless.experiments.layout_shift import run_layout_shift
 from mapless.experiments.runs import RunTally, planned_runs, run_dir_for, train_run
 from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -292,6 +293,7 @@ PIPELINES: dict[str, Callable[..., dict]] = {
     "table3": run_table3,
     "figure3": run_figure3,
     "figures45": run_figures45,
+    "layout_shift": run_layout_shift,
 }
 
 

@@ -18,7 +18,11 @@ from mapless.experiments.config import ExperimentConfig
 def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
     (the progress bar aside), so experiments with an identical run share it."""
-    blob = json.dumps(to_dict(dataclasses.replace(train_cfg, progress=False)), sort_keys=True)
+    data = to_dict(dataclasses.replace(train_cfg, progress=False))
+    if train_cfg.env.layouts == type(train_cfg.env.layouts)():
+        # Added after runs were made: hashed only when set, so that finished runs keep their folders.
+        del data["env"]["layouts"]
+    blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
 
@@ -28,7 +32,7 @@ def planned_runs(config: ExperimentConfig) -> dict[str, int]:
     retrained)."""
     if config.experiment == "table3":  # the focus model, then without one room type at a time
         return {config.focus: (1 + len(config.rooms)) * config.seeds}
-    per_model = len(config.rooms) if config.experiment == "table2" else 1
+    per_model = {"table2": len(config.rooms), "layout_shift": 2}.get(config.experiment, 1)
     return {model: per_model * config.seeds for model in config.models if model != "random"}
 
 

@@ -37,7 +37,7 @@ def scene_name(room_type: str, index: int) -> str:
 def _number(scene: str) -> int:
     if not scene.startswith("FloorPlan"):
         raise _unknown_scene(scene)
-    digits = scene[len("FloorPlan") :].removesuffix("_physics")
+    digits = scene.partition("@")[0][len("FloorPlan") :].removesuffix("_physics")
     if not digits.isdigit():
         raise _unknown_scene(scene)
     number = int(digits)
@@ -48,7 +48,18 @@ def _number(scene: str) -> int:
 
 
 def canonical_scene(scene: str) -> str:
-    """``FloorPlan28_physics`` -> ``FloorPlan28``; raises on names outside the 120 floor plans."""
+    """``FloorPlan28_physics`` -> ``FloorPlan28``; raises on names outside the 120 floor plans. A
+    scene variant's name (``FloorPlan28@gen:3``, mapless.scenes.variants) keeps its arrangement, in
+    canonical form, after checking its syntax."""
+    if "@" in scene:
+        from mapless.scenes.variants import parse_variant  # the variant syntax builds on this module
+
+        return str(parse_variant(scene))
+    return f"FloorPlan{_number(scene)}"
+
+
+def floor_plan_of(scene: str) -> str:
+    """The floor plan of a scene or scene variant: ``FloorPlan28@gen:3`` -> ``FloorPlan28``."""
     return f"FloorPlan{_number(scene)}"
 
 

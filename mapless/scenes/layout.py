@@ -31,6 +31,7 @@ class SceneObject:
     moveable: bool
     openable: bool
     is_open: bool
+    name: str = ""  # AI2-THOR's object name (``Apple_3fef4551``), what arrangements refer to
 
     @property
     def box_min(self) -> np.ndarray:
@@ -101,13 +102,19 @@ def _as_object(raw: dict) -> SceneObject:
         moveable=raw["moveable"],
         openable=raw["openable"],
         is_open=raw["is_open"],
+        name=raw.get("name", ""),
     )
 
 
 @functools.cache
 def load_scene(name: str) -> Scene:
-    """The built-in layout of ``FloorPlanN`` (``_physics`` suffix accepted)."""
+    """The built-in layout of ``FloorPlanN`` (``_physics`` suffix accepted), or of a scene variant
+    ``FloorPlanN@SOURCE:INDEX`` (mapless.scenes.variants): the floor plan under another arrangement."""
     name = canonical_scene(name)
+    if "@" in name:
+        from mapless.scenes.variants import load_variant  # variants build on this module
+
+        return load_variant(name)
     raw = _raw_scenes()[name]
     return Scene(
         name=name,

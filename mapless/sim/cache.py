@@ -2,7 +2,8 @@
 
 A cache entry is ``<root>/scenes/<fingerprint>/<scene>.npz``, where the root is ``--cache-dir``
 (``env.cache_dir``), else ``$MAPLESS_CACHE``, else ``~/.cache/mapless``: the option and the variable
-name the same folder, so one cache serves both. The fingerprint hashes every simulator parameter,
+name the same folder, so one cache serves both. A scene variant (mapless.scenes.variants) is
+``<scene>@<hash>.npz``, the hash over its arrangement's content. The fingerprint hashes every simulator parameter,
 the simulator's version and the scene data file, so changing any of them selects a fresh folder.
 Each file also stores its fingerprint, its scene and the checksum of its arrays; a file that does
 not load, carries another fingerprint or scene or fails the checksum is rebuilt, never used.
@@ -14,6 +15,7 @@ refuses it up front instead.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -29,6 +31,7 @@ from mapless.errors import MaplessError
 from mapless.files import replacing
 from mapless.scenes.catalogue import canonical_scene
 from mapless.scenes.layout import SCENE_FILE, load_scene
+from mapless.scenes.variants import cache_stem
 from mapless.sim.build import build_scene_data
 from mapless.sim.config import SimConfig
 from mapless.sim.scene_data import SceneData
@@ -81,7 +84,7 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
 
 def cache_path(scene: str, config: SimConfig, cache_dir: str | Path | None = None) -> Path:
     """Where ``scene``'s file lives under the cache root ``cache_dir`` (see :func:`scenes_dir`)."""
-    return scenes_dir(cache_dir) / fingerprint(config) / f"{canonical_scene(scene)}.npz"
+    return scenes_dir(cache_dir) / fingerprint(config) / f"{cache_stem(canonical_scene(scene))}.npz"
 
 
 def unwritable(folder: Path) -> str | None:
@@ -102,7 +105,7 @@ def save(data: SceneData, path: Path, config: SimConfig) -> None:
     header = {
         "fingerprint": fingerprint(config),
         "checksum": _checksum(arrays),
-        "scene": data.scene,
+        "scene": path.stem,  # what load() checks; a variant's file is named by its arrangement's hash
         "room_type": data.room_type,
         "instance_ids": list(data.instance_ids),
         "instance_types": list(data.instance_types),
@@ -201,9 +204,12 @@ def load_or_build(
     path = cache_path(scene, config, cache_dir)
     if path.exists() and not rebuild:
         try:
-            return load(path, config)
+            data = load(path, config)
         except StaleCacheError:
             pass
+        else:  # a variant's file may hold the same arrangement under another name
+            name = canonical_scene(scene)
+            return data if data.scene == name else dataclasses.replace(data, scene=name)
     data = build_scene_data(load_scene(scene), config)
     try:
         save(data, path, config)

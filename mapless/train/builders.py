@@ -36,7 +36,7 @@ class BuiltinLibrary:
 
 def prepare_scenes(config: TrainConfig) -> None:
     """Build the run's missing scene caches up front, in parallel and with a progress bar."""
-    BuiltinLibrary(config)().prepare(config.env.scene_list(), progress=config.progress)
+    BuiltinLibrary(config)().prepare(config.env.all_scenes(), progress=config.progress)
 
 
 def target_fields(config: TrainConfig) -> TargetFields:
@@ -56,14 +56,17 @@ def reward_config(config: TrainConfig) -> RewardConfig:
 
 
 def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:
-    return TrainingSampler(library, config.env.scene_list(), config.env.target_set, seed=seed)
+    env = config.env
+    return TrainingSampler(
+        library, env.scene_list(), env.target_set, seed=seed, variants=env.variant_map(), variant_fraction=env.layouts.fraction
+    )
 
 
 def training_env(config: TrainConfig, library: SceneLibrary, batch_size: int) -> BatchedNavEnv:
     """``batch_size`` training episodes in lockstep on the run's scenes, targets and rewards."""
     return BatchedNavEnv(
         library,
-        config.env.scene_list(),
+        config.env.all_scenes(),
         batch_size,
         targets=target_fields(config),
         rewards=reward_config(config),

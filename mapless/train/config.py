@@ -28,6 +28,53 @@ def _require(ok: bool, key: str, message: str) -> None:
 
 
 @dataclass(frozen=True)
+class LayoutsConfig:
+    """Which object arrangements training episodes are drawn on (docs/simulator.md, "Scene variants").
+
+    source: ``default`` (each floor plan's default arrangement only: the paper's protocol),
+        ``rearrange2023`` (the Rearrangement dataset's training arrangements, floor plans x01-x20),
+        ``gen`` (the procedural generator) or the path of a file in the rearrangement format.
+    fraction: share of training episodes drawn on a variant of the episode's floor plan, the rest on
+        its default arrangement (0 with ``default``; in (0, 1] otherwise).
+    per_scene: variants per floor plan: the source's first usable ones (generator seeds 0, 1, ...).
+        Each is a scene of its own in memory and in the cache (about 8 MB, 2-3 s to build).
+    """
+
+    source: str = "default"
+    fraction: float = 0.0
+    per_scene: int = 2
+
+    def __post_init__(self) -> None:
+        from mapless.scenes.arrangements import BUILTIN_SOURCES, source_path
+        from mapless.scenes.variants import GENERATED
+
+        default = self.source == "default"
+        if not (default or self.source == GENERATED or self.source in BUILTIN_SOURCES):
+            _require(
+                source_path(self.source).is_file(),
+                "env.layouts.source",
+                f"{self.source!r} is neither default, {GENERATED}, {', '.join(BUILTIN_SOURCES)} nor an arrangement file",
+            )
+        _require(
+            self.fraction == 0 if default else 0 < self.fraction <= 1,
+            "env.layouts.fraction",
+            f"must be 0 with source default, in (0, 1] otherwise; got {self.fraction}",
+        )
+        _require(self.per_scene >= 1, "env.layouts.per_scene", f"must be >= 1, got {self.per_scene}")
+
+    def variants(self, scenes: list[str]) -> dict[str, list[str]]:
+        """Each floor plan's training variants (none with ``default``)."""
+        if self.source == "default":
+            return {}
+        from mapless.scenes.variants import variants_of
+
+        found = {s: variants_of(s, self.source, self.per_scene) for s in scenes if "@" not in s}
+        empty = [s for s, names in found.items() if not names]
+        _require(not empty, "env.layouts.source", f"{self.source!r} has no arrangement of {', '.join(empty[:5])}")
+        return found
+
+
+@dataclass(frozen=True)
 class EnvConfig:
     """Where training episodes come from.
 
@@ -45,6 +92,7 @@ class EnvConfig:
     offline_dir: a SAVN/MJOLNIR offline data root to train on instead of the built-in simulator
         (docs/interop.md; its 512-channel ResNet maps need ``model.feature_channels=512``).
     sim: simulator parameters (they select the scene cache entry).
+    layouts: which arrangements of the floor plans episodes are drawn on (:class:`LayoutsConfig`).
     """
 
     scenes: str = "train"
@@ -58,6 +106,7 @@ class EnvConfig:
     cache_dir: str | None = None
     offline_dir: str | None = None
     sim: SimConfig = field(default_factory=SimConfig)
+    layouts: LayoutsConfig = field(default_factory=LayoutsConfig)
 
     def __post_init__(self) -> None:
         try:
@@ -75,6 +124,11 @@ class EnvConfig:
         _require(
             self.progress_reward >= 0, "env.progress_reward", f"must be >= 0, got {self.progress_reward}"
         )
+        _require(
+            self.layouts.source == "default" or not self.offline_dir,
+            "env.layouts.source",
+            "scene variants need the built-in simulator, not an offline data root",
+        )
         unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
         _require(
             not unknown_rooms,
@@ -84,6 +138,14 @@ class EnvConfig:
 
     def scene_list(self) -> list[str]:
         return list(dict.fromkeys(resolve_scenes(self.scenes)))
+
+    def variant_map(self) -> dict[str, list[str]]:
+        """Each training floor plan's variants under ``layouts`` (empty: default arrangements only)."""
+        return self.layouts.variants(self.scene_list())
+
+    def all_scenes(self) -> list[str]:
+        """The training scenes with their variants: what the environment and library must hold."""
+        return self.scene_list() + [v for names in self.variant_map().values() for v in names]
 
 
 @dataclass(frozen=True)

@@ -78,7 +78,7 @@ def _worker(
         torch.manual_seed(seed)
         rng = np.random.default_rng(seed)
         library = library_factory()
-        for scene in config.env.scene_list():  # load every scene up front, as the batched env does
+        for scene in config.env.all_scenes():  # load every scene up front, as the batched env does
             library[scene]
         sampler = training_sampler(config, library, seed)
         env = NavEnv(
