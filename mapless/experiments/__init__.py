@@ -13,7 +13,8 @@ selects checkpoints (``standard`` protocol: on val, reported once on test), eval
 * ``figures45``: top-down trajectories of the Table 1 models on one episode where the focus model
   succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF.
 
-Configurations live in ``experiments/<experiment>_<budget>.yaml`` (:class:`ExperimentConfig`).
+Configurations live in ``experiments/<experiment>_<budget>.yaml``, each read over its budget's
+``experiments/budgets/<budget>.yaml`` (:class:`ExperimentConfig`).
 Runs are stored under ``<runs_dir>/<model>__<variant>__s<seed>__<hash>`` where the hash covers the
 whole training configuration, so experiments share identical runs (figure3 reuses table1's).
 """
@@ -23,8 +24,10 @@ from mapless.experiments.config import (
     EXPERIMENTS,
     ExperimentConfig,
     ExperimentEval,
+    budget_path,
     config_path,
     load_experiment,
+    read_experiment,
     train_config,
 )
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
@@ -39,10 +42,12 @@ __all__ = [
     "ExperimentConfig",
     "ExperimentEval",
     "RunTally",
+    "budget_path",
     "config_path",
     "experiment_scenes",
     "load_experiment",
     "planned_runs",
+    "read_experiment",
     "reproduce",
     "run_dir_for",
     "train_config",
