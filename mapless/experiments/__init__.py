@@ -1,7 +1,8 @@
 """The paper's experiments as pipelines behind ``mapless reproduce EXPERIMENT --budget B``.
 
-Each experiment trains its runs (skipped when a finished run of the same configuration exists),
-selects checkpoints (``standard`` protocol: on val, reported once on test), evaluates, and writes
+Each experiment's pipeline (pipelines.py) trains its runs (skipped when a finished run of the
+same configuration exists), selects checkpoints (``standard`` protocol: on val, reported once on
+test) and evaluates, returning records (records.py); render.py writes them as
 ``reports/EXPERIMENT/`` (``EXPERIMENT.md``, ``EXPERIMENT.json``, PNGs):
 
 * ``table1``: every model on the test split, ALL and L>=5 (random needs no training).
@@ -9,9 +10,10 @@ selects checkpoints (``standard`` protocol: on val, reported once on test), eval
   (K-single, L-single, Be-single, Ba-single), each tested on all four room types.
 * ``table3``: ablation: cvmeta without the hierarchical relationships (the target->parent graph
   edges) of one room type at a time, next to the full model.
-* ``figure3``: ratio-of-exploration curves of the Table 1 models.
+* ``figure3``: ratio-of-exploration curves of the Table 1 models (from Table 1's records).
 * ``figures45``: top-down trajectories of the Table 1 models on one episode where the focus model
-  succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF.
+  succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF
+  (from Table 1's records).
 
 Configurations live in ``experiments/<experiment>_<budget>.yaml``, each read over its budget's
 ``experiments/budgets/<budget>.yaml`` (:class:`ExperimentConfig`).
