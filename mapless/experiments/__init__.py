@@ -12,7 +12,7 @@ test) and evaluates, returning records (records.py); render.py writes them as
   edges) of one room type at a time, next to the full model.
 * ``figure3``: ratio-of-exploration curves of the Table 1 models (from Table 1's records).
 * ``layout_shift``: the Table 1 models trained on default arrangements and on scene variants, each
-  tested on the test floor plans under default and under other arrangements (layout_shift.py).
+  tested on the test floor plans under default and under other arrangements.
 * ``figures45``: top-down trajectories of the Table 1 models on one episode where the focus model
   succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF
   (from Table 1's records).

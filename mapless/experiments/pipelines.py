@@ -14,6 +14,7 @@ from mapless.experiments.evaluator import Evaluator, experiment_scenes
 from mapless.experiments.records import (
     Figure3,
     Figures45,
+    LayoutShift,
     PerSeed,
     Setting,
     Table1,
@@ -156,12 +157,83 @@ def figures45(config: ExperimentConfig, log: Callable[[str], None]) -> Figures45
     return Figures45(table, focus, figures, experiment_scenes(config)[0])
 
 
+#: The layout-shift experiment's training rows and test sets.
+SHIFT_ROWS = ("default", "variants")
+SHIFT_SETS = ("default", "shifted")
+
+
+def _shift_row(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, row: str,
+               log: Callable[[str], None]) -> tuple[dict[str, PerSeed], list[dict]]:  # fmt: skip
+    """One model trained one way (``row``): per-seed results on the default and the shifted test set."""
+    if model == "random":
+        results, info = ev.untrained(model)
+        return {"default": [results], "shifted": [ev.on(ev.shift_episodes, model)]}, [info]
+    extra = None if row == "default" else {"env": {"layouts": config.variant_layouts}}
+    out: dict[str, PerSeed] = {"default": [], "shifted": []}
+    meta = []
+    for s in range(config.seeds):
+        cfg = train_config(config, model, seed=1 + s, extra=extra)
+        # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
+        run_dir = run_dir_for(config, cfg, "all" if row == "default" else "layouts")
+        tally.start(model, f"{row} arrangements, seed {1 + s}")
+        trained_share = train_run(cfg, run_dir, log)
+        results, info = ev.trained(run_dir, cfg)
+        chosen = ev.chosen_model(run_dir, info)
+        out["default"].append(results)
+        out["shifted"].append(ev.on(ev.shift_episodes, model, cfg, chosen))
+        tally.finish(trained_share)
+        meta.append({"run_dir": str(run_dir), "model_file": chosen, **info})
+    return out, meta
+
+
+def layout_shift(config: ExperimentConfig, log: Callable[[str], None]) -> LayoutShift:
+    """Do agents find objects that have moved? Each model trained on the default arrangements (the
+    paper's protocol: Table 1's run, reused when it exists) and on scene variants (``variant_layouts``),
+    selected on the val episodes of the default arrangements, reported on the test floor plans under
+    their default arrangements and under other ones (``eval.shift_layouts``, or ``eval.shift_file``).
+    Paired intervals: each model's variants row minus its default row, and the focus model minus each
+    other model on both sets (does the focus model's advantage grow or vanish when objects move?)."""
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    results: dict[tuple[str, str], dict[str, PerSeed]] = {}
+    records = []
+    for model in config.models:
+        for row in SHIFT_ROWS if model != "random" else SHIFT_ROWS[:1]:
+            log(f"{model}, trained on {row} arrangements:")
+            per_set, meta = _shift_row(config, ev, tally, model, row, log)
+            results[model, row] = per_set
+            for name in SHIFT_SETS:
+                label = f"{model} | {row} | {name}"
+                records.append(
+                    model_record(label, per_set[name], {"runs": meta, "trained_on": row, "test_on": name})
+                )
+    variants = [
+        _comparison(model, results[model, "default"][name], results[model, "variants"][name], name)
+        for model in config.models
+        if (model, "variants") in results
+        for name in SHIFT_SETS
+    ]
+    focus = config.focus
+    versus_focus = [
+        _comparison(f"{focus} − {m} ({row})", results[m, row][name], results[focus, row][name], name)
+        for (m, row) in results
+        if m != focus and (focus, row) in results
+        for name in SHIFT_SETS
+    ]
+    return LayoutShift(_setting(config, ev), len(ev.shift_episodes), records, variants, versus_focus)
+
+
+def _comparison(label: str, a: PerSeed, b: PerSeed, test_on: str) -> dict:
+    """B minus A on one test set, paired over the same episodes (and seeds)."""
+    return {"comparison": label, "test_on": test_on, **difference_record(a, b)}
+
+
 PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]] = {
     "table1": table1,
     "table2": table2,
     "table3": table3,
     "figure3": figure3,
     "figures45": figures45,
+    "layout_shift": layout_shift,
 }
 
 

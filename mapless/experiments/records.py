@@ -88,3 +88,18 @@ class Figures45:
     focus: str
     figures: list[TrajectoryFigure]
     scenes: LibrarySpec
+
+
+@dataclass
+class LayoutShift:
+    """Each model trained on the default arrangements and (but ``random``) on scene variants, tested
+    on the report episodes (``default``) and on the same split under other arrangements
+    (``shifted``): ``models`` are labelled ``model | trained on | tested on``. The differences are
+    ``{"comparison", "test_on", **difference_record}`` dicts, paired over the same episodes: each
+    model's variants row minus its default row, and the focus model minus each other model."""
+
+    setting: Setting
+    shifted_episodes: int  # per seed
+    models: list[dict]
+    variants_minus_default: list[dict]
+    focus_minus_model: list[dict]

@@ -21,7 +21,7 @@ from mapless.evaluate.report import (
     write_json,
 )
 from mapless.experiments.config import ROOM_ABBREV
-from mapless.experiments.records import Figure3, Figures45, Setting, Table1, Table2, Table3
+from mapless.experiments.records import Figure3, Figures45, LayoutShift, Setting, Table1, Table2, Table3
 from mapless.files import write_text
 
 #: What a renderer returns: the JSON payload and the markdown lines (figures are written on the way).
@@ -205,10 +205,56 @@ def figures45(experiment: str, record: Figures45, out: Path, command: str) -> Re
     return {"experiment": experiment, "figures": figures}, lines
 
 
+def layout_shift(experiment: str, record: LayoutShift, out: Path, command: str) -> Rendered:
+    """Rows ``model | trained on | tested on``; then the paired differences."""
+    config = record.setting.config
+    shift = config.eval.shift_file or config.eval.shift_layouts
+    lines = _header(record.setting, "Layout shift: the test floor plans under other arrangements", command)
+    lines += [
+        f"Shifted set: {record.shifted_episodes} episodes on the test floor plans under `{shift}`; "
+        f"variant training: `env.layouts` = {config.variant_layouts}.",
+        "Rows `model | trained on | tested on`; selection on val under the default arrangements.",
+        "",
+        model_table(record.models),
+        "",
+        "Trained on variants minus trained on default arrangements, in points, paired over the same "
+        "episodes (and seeds):",
+        "",
+        _comparison_table(record.variants_minus_default),
+        "",
+        f"{config.focus} minus each model, on the default and on the shifted test set (paired): does its "
+        "advantage grow or vanish when objects move?",
+        "",
+        _comparison_table(record.focus_minus_model),
+        "",
+    ]
+    payload = _payload(
+        experiment,
+        record.setting,
+        models=record.models,
+        variants_minus_default=record.variants_minus_default,
+        focus_minus_model=record.focus_minus_model,
+    )
+    return payload, lines
+
+
+def _comparison_table(comparisons: list[dict]) -> str:
+    """One row per ``{"comparison", "test_on", **difference_record}``: its paired differences."""
+    if not comparisons:
+        return "(none)"
+    header = ["comparison", "tested on", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    rows = [
+        [d["comparison"], d["test_on"], *(format_difference(c, d[c]) for c in MAIN_COLUMNS)]
+        for d in comparisons
+    ]
+    return markdown(header, rows)
+
+
 RENDERERS: dict[type, Callable[..., Rendered]] = {
     Table1: table1,
     Table2: table2,
     Table3: table3,
     Figure3: figure3,
     Figures45: figures45,
+    LayoutShift: layout_shift,
 }
