@@ -76,7 +76,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
                 if isinstance(value, str)
                 else value
             )
-        except ValueError:
+        except (TypeError, ValueError):  # float([1]) is a TypeError
             raise ConfigError(f"config key {key!r}: expected {annotation.__name__}, got {value!r}") from None
         if annotation is int and (not isinstance(number, int) or isinstance(number, float)):
             if isinstance(number, float) and number.is_integer():
