@@ -1,7 +1,7 @@
 """Learning benchmark: validation SR against wall-clock minutes and frames, model by model.
 
 Trains each run from scratch with its recipe (default: experiments/train_ppo.yaml, recurrent PPO;
-``MODEL@a3c`` uses the references' A3C recipe of experiments/table1_small.yaml's training block),
+``MODEL@a3c`` uses the references' A3C recipe of experiments/table2_small.yaml's and table3_small.yaml's training blocks),
 pauses every ``--eval-every`` minutes of training to evaluate the current policy on a fixed subset of
 the built-in val set (``--val-episodes``, the same episodes for every run, actions sampled as the
 evaluator does), and prints SR / SPL against minutes and frames, the time to reach ``--target`` val SR

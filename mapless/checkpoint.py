@@ -205,7 +205,10 @@ def config_of(payload: dict, config_type: type[C]) -> C:
 
 def model_config_of(payload: dict) -> ModelConfig:
     """The :class:`ModelConfig` of a checkpoint or model file (the ``model`` entry of its config)."""
-    return from_dict(ModelConfig, payload["config"]["model"], prefix="model.")
+    config = payload.get("config")
+    if not isinstance(config, dict) or not isinstance(config.get("model"), dict):
+        raise CheckpointError("the file's config has no model entry (a mapping)")
+    return from_dict(ModelConfig, config["model"], prefix="model.")
 
 
 def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:

@@ -76,7 +76,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
                 if isinstance(value, str)
                 else value
             )
-        except ValueError:
+        except (TypeError, ValueError):  # float([1]) is a TypeError
             raise ConfigError(f"config key {key!r}: expected {annotation.__name__}, got {value!r}") from None
         if annotation is int and (not isinstance(number, int) or isinstance(number, float)):
             if isinstance(number, float) and number.is_integer():
@@ -141,22 +141,26 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
+def read_mapping(path: str | Path) -> dict:
+    """The top-level mapping of a YAML config file, or a ConfigError saying why there is none."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except OSError as error:
+        raise ConfigError(f"cannot read config {path}: {error}") from error
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"config {path} is not UTF-8 text: {error}") from error
+    except yaml.YAMLError as error:
+        raise ConfigError(f"config {path} is not valid YAML: {error}") from error
+    except RecursionError:  # PyYAML parses nesting recursively
+        raise ConfigError(f"config {path} is nested too deeply to be a config") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config {path} must be a mapping at the top level")
+    return data
+
+
 def load_config(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None) -> T:
-    data: dict = {}
-    if path is not None:
-        path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except OSError as error:
-            raise ConfigError(f"cannot read config {path}: {error}") from error
-        except UnicodeDecodeError as error:
-            raise ConfigError(f"config {path} is not UTF-8 text: {error}") from error
-        except yaml.YAMLError as error:
-            raise ConfigError(f"config {path} is not valid YAML: {error}") from error
-        except RecursionError:  # PyYAML parses nesting recursively
-            raise ConfigError(f"config {path} is nested too deeply to be a config") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"config {path} must be a mapping at the top level")
+    data = read_mapping(path) if path is not None else {}
     return from_dict(cls, apply_overrides(data, overrides or []))
 
 

@@ -91,7 +91,7 @@ def _eval(args: argparse.Namespace) -> int:
     from mapless.evaluate.metrics import aggregate
     from mapless.evaluate.report import details_table, model_record, model_table, room_table, write_json
     from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-    from mapless.evaluate.selection import load_episodes, select_and_report
+    from mapless.evaluate.selection import evaluate_run, load_episodes
     from mapless.files import write_text
 
     path = Path(args.model)
@@ -112,18 +112,17 @@ def _eval(args: argparse.Namespace) -> int:
         from mapless.checkpoint import config_of, load_file, resolve_model_file
         from mapless.train.config import TrainConfig
 
-        model_file = resolve_model_file(path)
-        cfg = config_of(load_file(model_file), TrainConfig)
+        cfg = config_of(load_file(resolve_model_file(path)), TrainConfig)
         library = LibrarySpec.for_env(cfg.env, offline_dir=args.offline_dir)
         trained_rule = cfg.env.sim.visibility_distance
         target_set = cfg.env.target_set
         settings = EvalSettings(**{**settings.__dict__, "category_set": cfg.model.category_set})
         label = cfg.model.name
-        spec = AgentSpec(checkpoint=str(model_file))
+        baseline = None
         out = args.out or (path if path.is_dir() else path.parent) / "eval"
     elif args.model in ("random", "oracle"):
         label = args.model
-        spec = AgentSpec(kind="oracle") if args.model == "oracle" else AgentSpec(model={"name": "random"})
+        baseline = AgentSpec(kind="oracle") if args.model == "oracle" else AgentSpec(model={"name": "random"})
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
@@ -138,30 +137,27 @@ def _eval(args: argparse.Namespace) -> int:
         episodes = load_episodes(eval_split, args.episodes, **sets)
     report_name = args.episodes.name if args.episodes else None
     rule = _rule(protocol, library, trained_rule)
-    if args.select:
-        if not path.is_dir():
-            raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
-        select_eps = episodes if protocol.name == "paper" else load_episodes(protocol.select_split, **sets)
-        sel = select_and_report(
-            path,
-            select_eps,
-            episodes,
-            settings,
-            library,
-            protocol.name,
-            progress=print,
-            report_name=report_name,
-        )
-        results, seconds, steps = sel.report.results, sel.report.seconds, sel.report.steps
-        meta["selection"] = sel.summary()
-        meta["protocol_label"] = sel.label if "trained" not in rule else f"{sel.label}; {rule}"
+    if args.select and not path.is_dir():
+        raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
+    if baseline is not None:
+        run, selection, model_file = evaluate(baseline, episodes, settings, library), None, None
+    else:  # a trained run, or one model file of it
+        select_eps = None
+        if args.select:
+            select_eps = (
+                episodes if protocol.name == "paper" else load_episodes(protocol.select_split, **sets)
+            )
+        done = evaluate_run(path, episodes, settings, library, select_eps, protocol.name, print, report_name)
+        run, selection, model_file = done.report, done.selection, done.model_file
+    if selection is not None:
+        meta["selection"] = selection.summary()
+        meta["protocol_label"] = selection.label if "trained" not in rule else f"{selection.label}; {rule}"
     else:
-        run = evaluate(spec, episodes, settings, library)
-        results, seconds, steps = run.results, run.seconds, run.steps
         meta["protocol_label"] = (
             f"{protocol.name} protocol, single model on {report_name or eval_split}, no checkpoint selection; {rule}"
         )
-        meta["model_file"] = spec.checkpoint
+        meta["model_file"] = model_file
+    results, seconds, steps = run.results, run.seconds, run.steps
     meta["steps_per_second"] = steps / seconds if seconds else None
     record = model_record(label, [results], meta)
     write_json(record, out / f"{eval_split}.json")

@@ -205,3 +205,40 @@ def select_and_report(
         cache = run_dir / "eval" / f"{report_split}_{Path(chosen).stem}.json"
         report = _cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
     return Selection(protocol, label, chosen, int(scores[best]["episodes"]), scores, report)
+
+
+@dataclass
+class RunEvaluation:
+    """A trained run evaluated on the report episodes: the results of ``model_file``, chosen by
+    ``selection`` when there was one, else the run's final model (or the model file given)."""
+
+    report: EvalRun
+    model_file: str
+    selection: Selection | None = None
+
+
+def evaluate_run(
+    path: str | Path,
+    report_episodes: list[Episode],
+    settings: EvalSettings,
+    library: LibrarySpec,
+    select_episodes: list[Episode] | None = None,
+    protocol: str = "standard",
+    progress: Callable[[str], None] | None = None,
+    report_name: str | None = None,
+) -> RunEvaluation:
+    """How a trained run is evaluated, for ``mapless eval`` and the experiments alike. With
+    ``select_episodes``: every checkpoint of the run folder ``path`` on them, the best once on
+    ``report_episodes`` (:func:`select_and_report`). Without: the run's final model, or the model
+    file ``path``, on ``report_episodes``."""
+    if select_episodes is not None:
+        sel = select_and_report(
+            path, select_episodes, report_episodes, settings, library, protocol, progress, report_name
+        )
+        return RunEvaluation(sel.report, sel.chosen, sel)
+    from mapless.checkpoint import resolve_model_file
+
+    model_file = str(resolve_model_file(path))
+    return RunEvaluation(
+        evaluate(AgentSpec(checkpoint=model_file), report_episodes, settings, library), model_file
+    )

@@ -1,5 +1,12 @@
-"""Experiment configurations: ``experiments/<experiment>_<budget>.yaml`` -> :class:`ExperimentConfig`,
-and the :class:`~mapless.train.config.TrainConfig` of each of an experiment's runs."""
+"""Experiment configurations: ``experiments/<experiment>_<budget>.yaml`` read over
+``experiments/budgets/<budget>.yaml`` -> :class:`ExperimentConfig`, and the
+:class:`~mapless.train.config.TrainConfig` of each of an experiment's runs.
+
+A budget file holds what every experiment of that budget shares (training and evaluation
+settings, seeds, runs folder, Table 1's model lineup); an experiment file names its budget and holds
+only what differs from it. Each top-level key the experiment file sets replaces the budget's key of
+that name as a whole (``train:`` in an experiment file is its whole training block), which keeps
+what a run gets readable from two files; ``--set`` overrides apply last."""
 
 from __future__ import annotations
 
@@ -9,7 +16,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from mapless.config import ConfigError, apply_overrides, from_dict, load_config
+from mapless.config import ConfigError, apply_overrides, from_dict, read_mapping
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -99,7 +106,7 @@ class ExperimentConfig:
             raise ConfigError(f"config key 'seeds': must be >= 1, got {self.seeds}")
         from mapless.models import MODELS
 
-        for name in (*self.models, self.focus):
+        for name in (*self.models, self.focus, *self.per_model):
             if name not in MODELS:
                 raise UnknownNameError("model", name, MODELS)
         for room in (*self.rooms, *self.eval.rooms):
@@ -107,10 +114,30 @@ class ExperimentConfig:
                 raise UnknownNameError("room type", room, ROOM_TYPES)
 
 
+def _experiments_dir() -> Path:
+    return Path(str(resources.files("mapless"))).parent / "experiments"
+
+
 def config_path(experiment: str, budget: str, root: Path | None = None) -> Path:
     """``experiments/<experiment>_<budget>.yaml`` of the repository (or of ``root``)."""
-    base = root or Path(str(resources.files("mapless"))).parent / "experiments"
-    return base / f"{experiment}_{budget}.yaml"
+    return (root or _experiments_dir()) / f"{experiment}_{budget}.yaml"
+
+
+def budget_path(budget: str) -> Path:
+    """``experiments/budgets/<budget>.yaml`` of the repository: what the budget's experiments share."""
+    return _experiments_dir() / "budgets" / f"{budget}.yaml"
+
+
+def read_experiment(path: Path, overrides: list[str] | None = None) -> ExperimentConfig:
+    """The experiment file at ``path`` read over the file of the budget it names (a file naming no
+    budget stands alone), then ``overrides``. The runs' training configs are not checked here
+    (:func:`load_experiment` does)."""
+    data = read_mapping(path)
+    if "budget" in data:
+        if data["budget"] not in BUDGETS:
+            raise UnknownNameError("budget", data["budget"], BUDGETS)
+        data = {**read_mapping(budget_path(data["budget"])), **data}
+    return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
 
 
 def load_experiment(
@@ -120,16 +147,20 @@ def load_experiment(
     overrides: list[str] | None = None,
     seeds: int | None = None,
 ) -> ExperimentConfig:
+    """The configuration of ``experiment`` at ``budget`` (or the file ``path``), with every run's
+    training config checked before any work starts: a typo in any model's block fails here."""
     path = path or config_path(experiment, budget)
     if not path.is_file():
         raise MaplessError(
             f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
         )
     extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds is not None else [])]
-    config = load_config(ExperimentConfig, path, extra)
+    config = read_experiment(path, extra)
     if config.experiment != experiment:
         raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
-    for model in {*config.models, config.focus} - {"random"}:  # every run's config, before any work
+    # The per_model blocks of models not compared here too: a misspelt name or key is caught
+    # rather than silently ignored.
+    for model in sorted({*config.models, config.focus, *config.per_model} - {"random"}):
         train_config(config, model, 1)
         if config.experiment == "layout_shift":
             train_config(config, model, 1, {"env": {"layouts": config.variant_layouts}})

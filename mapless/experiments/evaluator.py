@@ -13,7 +13,7 @@ from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-from mapless.evaluate.selection import load_episodes, select_and_report
+from mapless.evaluate.selection import evaluate_run, load_episodes
 from mapless.experiments.config import ExperimentConfig, train_config
 from mapless.sim.episode import Episode
 
@@ -94,19 +94,16 @@ class Evaluator:
         return self._untrained[model]
 
     def trained(self, run_dir: Path, train_cfg) -> tuple[list[EpisodeResult], dict]:
+        """A trained run's report results: its checkpoint chosen on the selection episodes, or its
+        final model when the experiment does not select."""
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
-        if self.config.eval.select:
-            sel = select_and_report(
-                run_dir, self.select_episodes, self.report_episodes, settings, self.library(train_cfg),
-                self.config.eval.protocol, progress=self.log,
-            )  # fmt: skip
-            self.log(f"  chose {Path(sel.chosen).name} ({sel.chosen_episodes} training episodes)")
-            return sel.report.results, {
-                "selection": sel.summary(),
-                "steps_per_second": sel.report.steps_per_second,
-            }
-        from mapless.checkpoint import resolve_model_file
-
-        spec = AgentSpec(checkpoint=str(resolve_model_file(run_dir)))
-        run = evaluate(spec, self.report_episodes, settings, self.library(train_cfg))
-        return run.results, {"steps_per_second": run.steps_per_second}
+        select = self.select_episodes if self.config.eval.select else None
+        library, protocol = self.library(train_cfg), self.config.eval.protocol
+        done = evaluate_run(run_dir, self.report_episodes, settings, library, select, protocol, self.log)
+        info: dict = {"steps_per_second": done.report.steps_per_second}
+        if done.selection is not None:
+            self.log(
+                f"  chose {Path(done.model_file).name} ({done.selection.chosen_episodes} training episodes)"
+            )
+            info = {"selection": done.selection.summary(), **info}
+        return done.report.results, info

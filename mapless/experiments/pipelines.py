@@ -1,39 +1,35 @@
-"""The experiments' pipelines: train (or reuse) the runs, evaluate them, write the report."""
+"""The experiments' pipelines: train (or reuse) the runs, evaluate them, and return what they found
+as records (records.py); :func:`reproduce` has render.py write the report."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from mapless.config import to_dict
-from mapless.evaluate.metrics import EpisodeResult
-from mapless.evaluate.report import (
-    COLUMNS,
-    MAIN_COLUMNS,
-    ROOM_NAMES,
-    details_table,
-    difference_record,
-    format_difference,
-    format_estimate,
-    markdown,
-    model_record,
-    model_table,
-    room_table,
-    write_json,
-)
+from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
-from mapless.experiments.layout_shift import run_layout_shift
+from mapless.experiments.records import (
+    Figure3,
+    Figures45,
+    LayoutShift,
+    PerSeed,
+    Setting,
+    Table1,
+    Table2,
+    Table2Row,
+    Table3,
+    TrajectoryFigure,
+)
+from mapless.experiments.render import write_report
 from mapless.experiments.runs import RunTally, planned_runs, run_dir_for, train_run
-from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
 
 
 def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, variant: str = "all",
-                   extra: dict | None = None, log: Callable[[str], None] = print) -> tuple[list[list[EpisodeResult]], list[dict]]:  # fmt: skip
+                   extra: dict | None = None, log: Callable[[str], None] = print) -> tuple[PerSeed, list[dict]]:  # fmt: skip
     """Per-seed report results of one model (trained per seed, or untrained for ``random``)."""
     per_seed, meta = [], []
     if model == "random":
@@ -51,19 +47,12 @@ def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, mod
     return per_seed, meta
 
 
-def _header(config: ExperimentConfig, title: str, ev: Evaluator, command: str) -> list[str]:
-    return [
-        f"# {title}",
-        "",
-        f"Budget `{config.budget}`, {config.seeds} training seed(s); {len(ev.report_episodes)} report episodes "
-        f"({config.eval.per_room} per room type); protocol: {ev.protocol_label}.",
-        f"Command: `{command}`; finished {time.strftime('%Y-%m-%d %H:%M')}.",
-        "Cells: mean (± std over seeds) [95 % bootstrap interval over episodes], in %.",
-        "",
-    ]
+def _setting(config: ExperimentConfig, ev: Evaluator) -> Setting:
+    return Setting(config, ev.protocol_label, len(ev.report_episodes))
 
 
-def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+def table1(config: ExperimentConfig, log: Callable[[str], None]) -> Table1:
+    """Every model of the config on the report episodes, and the focus model minus each other."""
     ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     records, results = [], {}
     for model in config.models:
@@ -75,44 +64,13 @@ def run_table1(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
         for rec in records:
             if rec["model"] != config.focus:
                 rec["focus_minus_model"] = difference_record(results[rec["model"]], results[config.focus])
-    lines = _header(config, "Table 1: navigation results on unseen scenes", ev, command)
-    lines += [model_table(records), "", *_focus_differences(config.focus, records)]
-    lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
-    for rec in records:
-        lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
-    return {**_finish(config, ev, out, lines, models=records), "results": results}
+    return Table1(_setting(config, ev), records, results)
 
 
-def _focus_differences(focus: str, records: list[dict]) -> list[str]:
-    """Table 1's comparison of the focus model with each other model, if it has one."""
-    key = "focus_minus_model"
-    rows = [
-        [rec["model"], *(format_difference(c, rec[key][c]) for c in MAIN_COLUMNS)]
-        for rec in records
-        if key in rec
-    ]
-    if not rows:
-        return []
-    header = ["model", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
-    return [
-        f"{focus} minus each model, in points, with the 95 % interval of the difference over episodes "
-        "(paired: the same episodes) and each model's training seeds:",
-        "",
-        markdown(header, rows),
-        "",
-    ]
-
-
-def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
-    """Rows: model x training room type; columns: SR / SPL on each test room type and overall."""
+def table2(config: ExperimentConfig, log: Callable[[str], None]) -> Table2:
+    """One run per model and training room type, each tested on every room type."""
     ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
-    rows, records = [], []
-    header = [
-        "model",
-        "trained on",
-        *(f"{ROOM_NAMES[r]} SR / SPL" for r in config.eval.rooms),
-        "All SR / SPL",
-    ]
+    rows = []
     for model in config.models:
         for room in config.rooms:
             log(f"{model}, {ROOM_ABBREV[room]}-single:")
@@ -126,39 +84,11 @@ def run_table2(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
                 {"runs": meta, "train_room": room},
                 keep_episodes=False,
             )
-            records.append(rec)
-            cells = []
-            for test_room in config.eval.rooms:
-                est = rec["rooms"].get(test_room)
-                cells.append(_pair(est))
-            rows.append([model, f"{ROOM_ABBREV[room]}-single", *cells, _pair(rec["estimates"])])
-    lines = _header(
-        config, "Table 2: generalisation across room types (train on one, test on all)", ev, command
-    )
-    lines += [markdown(header, rows), ""]
-    return _finish(config, ev, out, lines, runs=records)
+            rows.append(Table2Row(model, room, rec))
+    return Table2(_setting(config, ev), rows)
 
 
-def _finish(config: ExperimentConfig, ev: Evaluator, out: Path, lines: list[str], **results) -> dict:
-    """Write the experiment's JSON and markdown report; return both."""
-    payload = {
-        "experiment": config.experiment,
-        "config": to_dict(config),
-        "protocol": ev.protocol_label,
-        **results,
-    }
-    _write(out, config.experiment, payload, lines)
-    return {"payload": payload, "markdown": "\n".join(lines)}
-
-
-def _pair(estimates: dict | None) -> str:
-    """``SR [95 % interval] / SPL`` of one cell (the SPL interval is left to the JSON, for width)."""
-    if not estimates:
-        return "–"
-    return f"{format_estimate('success', estimates['success'])} / {format_estimate('spl', estimates['spl'], False)}"
-
-
-def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
+def table3(config: ExperimentConfig, log: Callable[[str], None]) -> Table3:
     """The focus model with every room's relationships, then without those of one room type."""
     ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
     variants = [("full", None)] + [(room, tuple(r for r in ROOM_TYPES if r != room)) for room in config.rooms]
@@ -189,130 +119,134 @@ def run_table3(config: ExperimentConfig, out: Path, log: Callable[[str], None], 
                 name: difference_record(full, per_seed, name),
             }
         records.append(rec)
-    header = ["model", *(f"{ROOM_NAMES[r]} SR / SPL" for r in config.eval.rooms), "All SR / SPL"]
-    rows = [
-        [rec["model"], *(_pair(rec["rooms"].get(r)) for r in config.eval.rooms), _pair(rec["estimates"])]
-        for rec in records
-    ]
-    lines = _header(config, "Table 3: ablation of the hierarchical relationships", ev, command)
-    lines += [
-        "Each `<Room>_no_relationships` run drops the target->parent edges that only that room type's hierarchy adds to the graph (pairs the VG graph or another room type also links stay) and its parent-object reward.",
-        "",
-        markdown(header, rows),
-        "",
-        model_table(records),
-        "",
-        "Each ablation minus the full model, in points, with the 95 % interval of the difference over "
-        "episodes (paired: the same episodes) and both runs' training seeds; the paper's claim is a "
-        "drop, largest on the room type whose relationships were removed:",
-        "",
-        markdown(
-            ["model", "Δ SR", "Δ SPL", "Δ SR, its room type", "Δ SPL, its room type"],
-            [
-                [rec["model"], *_ablation_cells(rec["minus_full"], rec["removed_room"])]
-                for rec in records
-                if "minus_full" in rec
-            ],
-        ),
-        "",
-    ]
-    return _finish(config, ev, out, lines, models=records)
+    return Table3(_setting(config, ev), records)
 
 
-def _ablation_cells(minus_full: dict, room: str) -> list[str]:
-    return [format_difference(c, minus_full[part][c]) for part in ("all", room) for c in ("success", "spl")]
+def figure3(config: ExperimentConfig, log: Callable[[str], None]) -> Figure3:
+    """Table 1's records, and each model's final ratio of exploration."""
+    table = table1(config, log)
+    ratios = {m: seed_estimates(per_seed)["exploration_ratio"] for m, per_seed in table.results.items()}
+    return Figure3(table, ratios)
 
 
-def run_figure3(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
-    from mapless.evaluate.figures import exploration_figure
-
-    table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
-    pooled = {m: [r for seed in per_seed for r in seed] for m, per_seed in table["results"].items()}
-    curves = exploration_figure(pooled, out / "figure3_exploration.png")
-    ratios = {m: seed_estimates(per_seed)["exploration_ratio"] for m, per_seed in table["results"].items()}
-    lines = [
-        "# Figure 3: ratio of exploration",
-        "",
-        "Distinct states explored / steps taken, per step index, averaged over the episodes still running.",
-        f"Command: `{command}`.",
-        "",
-        "![ratio of exploration](figure3_exploration.png)",
-        "",
-        markdown(
-            ["model", "final ratio (episode mean)"],
-            [[m, format_estimate("exploration_ratio", e)] for m, e in ratios.items()],
-        ),
-        "",
-    ]
-    payload = {
-        "experiment": config.experiment,
-        "curves": curves,
-        "final_ratio": {m: e.to_dict() for m, e in ratios.items()},
-    }
-    _write(out, config.experiment, payload, lines)
-    return {"payload": payload, "markdown": "\n".join(lines)}
-
-
-def run_figures45(config: ExperimentConfig, out: Path, log: Callable[[str], None], command: str) -> dict:
-    from mapless.evaluate.figures import pick_showcase, trajectory_figure, trajectory_gif
+def figures45(config: ExperimentConfig, log: Callable[[str], None]) -> Figures45:
+    """Table 1's records, and the episodes of Figure 4 (the focus model succeeds where most others
+    fail) and Figure 5 (a failure of the focus model), each as every model ran it on its first seed."""
+    from mapless.evaluate.figures import pick_showcase
     from mapless.knowledge import parents_of
 
-    table = run_table1(dataclasses.replace(config, experiment="table1"), out / "table1", log, command)
-    first_seed = {m: per_seed[0] for m, per_seed in table["results"].items()}
+    table = table1(config, log)
+    first_seed = {m: per_seed[0] for m, per_seed in table.results.items()}
     focus = config.focus if config.focus in first_seed else next(iter(first_seed))
     showcase, failure = pick_showcase(first_seed, focus)
-    library = experiment_scenes(config)[0].build()
-    lines = ["# Figures 4 and 5: trajectories", "", f"Command: `{command}`.", ""]
-    figures = {}
+    figures = []
     for name, index, caption in (
         ("figure4_trajectories", showcase, f"{focus} succeeds; the other models on the same episode"),
         ("figure5_failure", failure, f"a failure case of {focus}"),
     ):
         if index is None:
-            lines += [f"No episode for {name} ({caption}) in this run.", ""]
+            figures.append(TrajectoryFigure(name, caption, None, {}, ()))
             continue
         chosen = {m: next(r for r in res if r.index == index) for m, res in first_seed.items()}
         episode = chosen[focus]
-        parents = tuple(parents_of(episode.room_type, episode.target))
-        trajectory_figure(chosen, library, out / f"{name}.png", parents=parents)
-        figures[name] = {"index": index, "episode_id": episode.episode_id, "scene": episode.scene, "target": episode.target,
-                         "parents": list(parents), "outcomes": {m: {"success": r.success, "length": r.length} for m, r in chosen.items()}}  # fmt: skip
-        lines += [f"## {name}: {caption}", "", f"{episode.scene}, target {episode.target}, parents {', '.join(parents) or '–'}.", "",
-                  f"![{name}]({name}.png)", ""]  # fmt: skip
-        if config.gif and name == "figure4_trajectories":
-            trajectory_gif(episode, library, out / f"{name}_{focus}.gif", every=1)
-            lines += [f"Egocentric views of {focus}: `{name}_{focus}.gif`.", ""]
-    payload = {"experiment": config.experiment, "figures": figures}
-    _write(out, config.experiment, payload, lines)
-    return {"payload": payload, "markdown": "\n".join(lines)}
+        figures.append(
+            TrajectoryFigure(
+                name, caption, index, chosen, tuple(parents_of(episode.room_type, episode.target))
+            )
+        )
+    return Figures45(table, focus, figures, experiment_scenes(config)[0])
 
 
-PIPELINES: dict[str, Callable[..., dict]] = {
-    "table1": run_table1,
-    "table2": run_table2,
-    "table3": run_table3,
-    "figure3": run_figure3,
-    "figures45": run_figures45,
-    "layout_shift": run_layout_shift,
+#: The layout-shift experiment's training rows and test sets.
+SHIFT_ROWS = ("default", "variants")
+SHIFT_SETS = ("default", "shifted")
+
+
+def _shift_row(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, row: str,
+               log: Callable[[str], None]) -> tuple[dict[str, PerSeed], list[dict]]:  # fmt: skip
+    """One model trained one way (``row``): per-seed results on the default and the shifted test set."""
+    if model == "random":
+        results, info = ev.untrained(model)
+        return {"default": [results], "shifted": [ev.on(ev.shift_episodes, model)]}, [info]
+    extra = None if row == "default" else {"env": {"layouts": config.variant_layouts}}
+    out: dict[str, PerSeed] = {"default": [], "shifted": []}
+    meta = []
+    for s in range(config.seeds):
+        cfg = train_config(config, model, seed=1 + s, extra=extra)
+        # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
+        run_dir = run_dir_for(config, cfg, "all" if row == "default" else "layouts")
+        tally.start(model, f"{row} arrangements, seed {1 + s}")
+        trained_share = train_run(cfg, run_dir, log)
+        results, info = ev.trained(run_dir, cfg)
+        chosen = ev.chosen_model(run_dir, info)
+        out["default"].append(results)
+        out["shifted"].append(ev.on(ev.shift_episodes, model, cfg, chosen))
+        tally.finish(trained_share)
+        meta.append({"run_dir": str(run_dir), "model_file": chosen, **info})
+    return out, meta
+
+
+def layout_shift(config: ExperimentConfig, log: Callable[[str], None]) -> LayoutShift:
+    """Do agents find objects that have moved? Each model trained on the default arrangements (the
+    paper's protocol: Table 1's run, reused when it exists) and on scene variants (``variant_layouts``),
+    selected on the val episodes of the default arrangements, reported on the test floor plans under
+    their default arrangements and under other ones (``eval.shift_layouts``, or ``eval.shift_file``).
+    Paired intervals: each model's variants row minus its default row, and the focus model minus each
+    other model on both sets (does the focus model's advantage grow or vanish when objects move?)."""
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    results: dict[tuple[str, str], dict[str, PerSeed]] = {}
+    records = []
+    for model in config.models:
+        for row in SHIFT_ROWS if model != "random" else SHIFT_ROWS[:1]:
+            log(f"{model}, trained on {row} arrangements:")
+            per_set, meta = _shift_row(config, ev, tally, model, row, log)
+            results[model, row] = per_set
+            for name in SHIFT_SETS:
+                label = f"{model} | {row} | {name}"
+                records.append(
+                    model_record(label, per_set[name], {"runs": meta, "trained_on": row, "test_on": name})
+                )
+    variants = [
+        _comparison(model, results[model, "default"][name], results[model, "variants"][name], name)
+        for model in config.models
+        if (model, "variants") in results
+        for name in SHIFT_SETS
+    ]
+    focus = config.focus
+    versus_focus = [
+        _comparison(f"{focus} − {m} ({row})", results[m, row][name], results[focus, row][name], name)
+        for (m, row) in results
+        if m != focus and (focus, row) in results
+        for name in SHIFT_SETS
+    ]
+    return LayoutShift(_setting(config, ev), len(ev.shift_episodes), records, variants, versus_focus)
+
+
+def _comparison(label: str, a: PerSeed, b: PerSeed, test_on: str) -> dict:
+    """B minus A on one test set, paired over the same episodes (and seeds)."""
+    return {"comparison": label, "test_on": test_on, **difference_record(a, b)}
+
+
+PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]] = {
+    "table1": table1,
+    "table2": table2,
+    "table3": table3,
+    "figure3": figure3,
+    "figures45": figures45,
+    "layout_shift": layout_shift,
 }
-
-
-def _write(out: Path, name: str, payload: dict, lines: list[str]) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(payload, out / f"{name}.json")
-    write_text(out / f"{name}.md", "\n".join(lines))
 
 
 def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log: Callable[[str], None] = print,
               command: str = "") -> dict:  # fmt: skip
-    """Run one experiment end to end; returns the pipeline's payload and markdown. Reports go to
+    """Run one experiment end to end; returns its report's payload and markdown. Reports go to
     ``<reports_dir>/<experiment>``, or ``<experiment>-<protocol>`` under a protocol other than the
     standard one, so that a table under two protocols stands side by side."""
     suffix = "" if config.eval.protocol == "standard" else f"-{config.eval.protocol}"
     out = Path(reports_dir) / f"{config.experiment}{suffix}"
     start = time.perf_counter()
-    result = PIPELINES[config.experiment](
-        config, out, log, command or f"mapless reproduce {config.experiment} --budget {config.budget}"
-    )
+    record = PIPELINES[config.experiment](config, log)
+    command = command or f"mapless reproduce {config.experiment} --budget {config.budget}"
+    result = write_report(config.experiment, record, out, command)
     log(f"{config.experiment}: done in {time.perf_counter() - start:.0f} s; report in {out}")
     return result

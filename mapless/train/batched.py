@@ -13,29 +13,28 @@ The same code runs on every rank under torchrun (:mod:`mapless.train.distributed
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
 from mapless.train import distributed as dist
 from mapless.train.builders import BuiltinLibrary, LibraryFactory, new_model, training_env, training_sampler
 from mapless.train.config import TrainConfig
 from mapless.train.gradients import check_finite, clip_gradients, fill_missing_gradients, trainable
-from mapless.train.monitor import RunMonitor, run_summary
+from mapless.train.loop import TrainingLoop
+from mapless.train.monitor import RunMonitor
 from mapless.train.optim import SharedAdam
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
-from mapless.train.runtime import GracefulStop, configure_torch, seed_for
+from mapless.train.runtime import configure_torch, seed_for
 
 #: Rows of the per-episode statistics exchanged between ranks.
 _EPISODE_ROWS = ("success", "spl", "length", "reward")
 
 
-class BatchedTrainer:
+class BatchedTrainer(TrainingLoop):
     label = "batched"  # the progress bar's name for the trainer
 
     def __init__(
@@ -47,15 +46,11 @@ class BatchedTrainer:
     ):
         """``run_dir`` receives logs and checkpoints (rank 0 only); ``library_factory`` defaults to the
         cached built-in scenes (tests pass small hand-made ones)."""
-        self.config = config
         self.ctx = ctx or dist.DistContext()
-        self.run_dir = Path(run_dir) if run_dir is not None and self.ctx.is_main else None
+        super().__init__(config, run_dir if self.ctx.is_main else None)
         self.library_factory = library_factory or BuiltinLibrary(config)
         self.device = dist.rank_device(config.device, self.ctx.local_rank)
-        self.counters = {"episodes": 0, "frames": 0, "updates": 0}
-        self._clock, self._out_of_time = time.perf_counter(), False
-        self._snapshot_due = False  # the last update crossed a checkpoint_every boundary
-        self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
+        self._time_up = False  # the wall-clock limit, as last agreed over ranks
 
     # -- setup -----------------------------------------------------------------------------------
     def _setup(self, resume: dict | None) -> None:
@@ -105,34 +100,14 @@ class BatchedTrainer:
             torch.manual_seed(seed_for(self.config, 30_000, *streams))
             self.rng = np.random.default_rng(seed_for(self.config, 30_001, *streams))
 
-    # -- checkpoints -----------------------------------------------------------------------------
-    def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
-        rngs = dist.gather_objects(self._rng_state(), self.ctx)  # collective: every rank calls it
-        if self.run_dir is None:
-            return
-        ckpt.save_run_state(
-            self.run_dir,
-            self.model,
-            self.optimizer,
-            self.config,
-            self.counters,
-            rngs,
-            self.ctx.world_size,
-            final,
-            snapshot,
-            self.monitor.state() if self.monitor is not None else None,
-        )
+    def _rng_states(self) -> tuple[list[dict], int]:
+        return dist.gather_objects(self._rng_state(), self.ctx), self.ctx.world_size  # collective
 
-    # -- loop ------------------------------------------------------------------------------------
-    def _budget_reached(self) -> bool:
-        cfg = self.config
-        # The wall-clock limit is decided in _account, agreed over ranks (clocks differ per rank).
-        return (
-            (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes)
-            or (cfg.frames > 0 and self.counters["frames"] >= cfg.frames)
-            or self._out_of_time
-        )
+    def _out_of_time(self) -> bool:
+        # Decided in _account, agreed over ranks (clocks differ per rank).
+        return self._time_up
 
+    # -- one update ------------------------------------------------------------------------------
     def update(self) -> dict[str, Any]:
         """One batch of episodes and one optimizer step; returns this rank's statistics."""
         cfg = self.config
@@ -148,32 +123,9 @@ class BatchedTrainer:
         self.optimizer.step()
         return {"trajectory": trajectory, "losses": losses, "grad_norm": grad_norm}
 
-    def run(self, resume: dict | None = None) -> dict[str, float]:
-        """Train until the budget; ``resume`` is a loaded checkpoint (:func:`checkpoint.load_file`)."""
-        cfg = self.config
-        self._setup(resume)
-        monitor = self.monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, self.label, resume)
-        start, start_frames = time.perf_counter(), self.counters["frames"]
-        self._clock, self._out_of_time = start, False
-        first: tuple[float, int] | None = None  # after the first update (allocation warm-up excluded)
-        stopped = False
-        try:
-            with GracefulStop() as stop:
-                while not self._budget_reached():
-                    result = self.update()
-                    stopped = self._account(result, monitor, stop.requested)
-                    if first is None:
-                        first = (time.perf_counter(), self.counters["frames"])
-                    if stopped:
-                        break
-            loop_end = time.perf_counter()
-            # A stop writes a snapshot only where the schedule puts one (its update crossed it).
-            self._checkpoint(final=not stopped, snapshot=not stopped or self._snapshot_due)
-        finally:
-            monitor.close(partial_record=not stopped)
-        return run_summary(
-            self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
-        )
+    def _train_step(self, stop_requested: bool) -> bool:
+        assert self.monitor is not None
+        return self._account(self.update(), self.monitor, stop_requested)
 
     def _account(self, result: dict[str, Any], monitor: RunMonitor, stop_requested: bool) -> bool:
         """Merge statistics over ranks, advance counters, log and checkpoint. Returns True to stop."""
@@ -211,24 +163,13 @@ class BatchedTrainer:
 
     def _out_of_time_here(self) -> float:
         """1.0 when this rank's clock passed ``max_seconds`` (agreed over ranks by the caller)."""
-        cfg = self.config
-        return float(cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds)
+        return float(super()._out_of_time())
 
     def _advance(
         self, monitor: RunMonitor, episodes: int, frames: int, stop_requested: bool, out_of_time: bool
     ) -> bool:
-        """Advance the counters by an update's totals over all ranks, log, checkpoint on schedule.
-        Returns True to stop."""
-        before = self.counters["episodes"]
-        self.counters["episodes"] += episodes
-        self.counters["frames"] += frames
-        self.counters["updates"] += 1
-        monitor.advance(self.counters["episodes"], self.counters["frames"])
-        every = self.config.checkpoint_every
-        self._snapshot_due = self.counters["episodes"] // every > before // every
-        if stop_requested:
-            return True
-        self._out_of_time = out_of_time
-        if self._snapshot_due and not self._budget_reached():
-            self._checkpoint()
-        return False
+        """Count an update's totals over all ranks (``monitor`` is the run's, ``self.monitor``) with
+        the wall-clock verdict agreed over them. Returns True to stop."""
+        if not stop_requested:
+            self._time_up = out_of_time
+        return self._count(episodes, frames, stop_requested)

@@ -33,7 +33,6 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 
-from mapless import checkpoint as ckpt
 from mapless.agent.acting import observation_keys
 from mapless.errors import MaplessError
 from mapless.sim.env import NavEnv
@@ -47,10 +46,10 @@ from mapless.train.builders import (
 )
 from mapless.train.config import TrainConfig
 from mapless.train.gradients import clip_gradients, fill_missing_gradients, trainable
-from mapless.train.monitor import RunMonitor, run_summary
+from mapless.train.loop import TrainingLoop
 from mapless.train.optim import SharedAdam
 from mapless.train.rollout import accumulate_gradients, make_actor, run_episode
-from mapless.train.runtime import GracefulStop, configure_torch, seed_for
+from mapless.train.runtime import configure_torch, seed_for
 
 POLL_SECONDS = 0.2
 JOIN_SECONDS = 10.0
@@ -133,48 +132,33 @@ def _worker(
         raise SystemExit(1) from None
 
 
-class AsyncTrainer:
+class AsyncTrainer(TrainingLoop):
+    label = "async"
+
     def __init__(
         self, config: TrainConfig, run_dir: Path | None, library_factory: LibraryFactory | None = None
     ):
         if config.device != "cpu":
             raise MaplessError("async mode runs its workers on the CPU; use mode=batched for device=cuda")
-        self.config = config
-        self.run_dir = Path(run_dir) if run_dir is not None else None
+        super().__init__(config, run_dir)
         self.library_factory = library_factory or BuiltinLibrary(config)
-        self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self.workers: list[Any] = []
-        self._clock = time.perf_counter()
-        self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
 
-    # -- checkpoints -----------------------------------------------------------------------------
-    def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
-        if self.run_dir is None:
-            return
-        monitor = self.monitor.state() if self.monitor is not None else None
-        ckpt.save_run_state(
-            self.run_dir,
-            self.model,
-            self.optimizer,
-            self.config,
-            self.counters,
-            [],
-            1,
-            final,
-            snapshot,
-            monitor,
-        )
-
-    def _budget_reached(self) -> bool:
+    def _setup(self, resume: dict | None) -> None:
         cfg = self.config
-        return (
-            (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes)
-            or (cfg.frames > 0 and self.counters["frames"] >= cfg.frames)
-            or (cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds)
-        )
+        configure_torch(cfg.threads)
+        torch.manual_seed(seed_for(cfg, 0))
+        self.model = new_model(cfg)
+        self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.optim)
+        if resume is not None:
+            self.model.load_state_dict(resume["model"])
+            self.optimizer.load_state_dict(resume["optimizer"])
+            self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
+        self.model.share_memory()
+        self.optimizer.share_memory()
 
     # -- workers ---------------------------------------------------------------------------------
-    def _start_workers(self) -> None:
+    def _start(self) -> None:
         cfg = self.config
         context = mp.get_context("spawn")
         self.results = context.Queue()
@@ -227,7 +211,7 @@ class AsyncTrainer:
             pass
         return None
 
-    def _stop_workers(self) -> None:
+    def _end(self) -> None:
         """Ask the workers to stop, drain their queue so none blocks on a full pipe, then join;
         a worker still alive after the grace period is terminated."""
         if not self.workers:
@@ -253,66 +237,30 @@ class AsyncTrainer:
         self.workers = []
 
     # -- loop ------------------------------------------------------------------------------------
-    def run(self, resume: dict | None = None) -> dict[str, float]:
-        cfg = self.config
-        configure_torch(cfg.threads)
-        torch.manual_seed(seed_for(cfg, 0))
-        self.model = new_model(cfg)
-        self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.optim)
-        if resume is not None:
-            self.model.load_state_dict(resume["model"])
-            self.optimizer.load_state_dict(resume["optimizer"])
-            self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
-        self.model.share_memory()
-        self.optimizer.share_memory()
-        monitor = self.monitor = RunMonitor.for_run(self.run_dir, cfg, self.counters, "async", resume)
-        start, start_frames = time.perf_counter(), self.counters["frames"]
-        self._clock = start
-        first: tuple[float, int] | None = None  # (time, frames) of the first finished episode
-        stopped = False
+    def _train_step(self, stop_requested: bool) -> bool:
+        """Count the next episode a worker finished, if one arrives within the poll interval.
+        Scheduled snapshots are written as episodes are counted; a stop adds none."""
+        if stop_requested:
+            return True
         try:
-            self._start_workers()
-            with GracefulStop() as stop:
-                while not self._budget_reached():
-                    if stop.requested:
-                        stopped = True
-                        break
-                    try:
-                        kind, rank, payload = self.results.get(timeout=POLL_SECONDS)
-                    except queue_module.Empty:
-                        self._check_workers()
-                        continue
-                    if kind == "error":
-                        raise WorkerError(f"worker {rank} failed; the run was stopped:\n{payload}")
-                    self._account(payload, monitor)
-                    if first is None:
-                        first = (time.perf_counter(), self.counters["frames"])
-                    self._check_workers()
-            loop_end = time.perf_counter()
-            self._stop_workers()
-            # Scheduled snapshots are written as episodes are counted; a stop adds none.
-            self._checkpoint(final=not stopped, snapshot=not stopped)
-        finally:
-            self._stop_workers()
-            monitor.close(partial_record=not stopped)
-        return run_summary(
-            self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
-        )
+            kind, rank, payload = self.results.get(timeout=POLL_SECONDS)
+        except queue_module.Empty:
+            self._check_workers()
+            return False
+        if kind == "error":
+            raise WorkerError(f"worker {rank} failed; the run was stopped:\n{payload}")
+        self._account(payload)
+        self._check_workers()
+        return False
 
-    def _account(self, stats: dict[str, float], monitor: RunMonitor) -> None:
-        before = self.counters["episodes"]
-        self.counters["episodes"] += 1
-        self.counters["frames"] += int(stats["length"])
-        self.counters["updates"] += 1
-        monitor.add_episodes(*(np.array([stats[k]]) for k in ("success", "spl", "length", "reward")))
-        monitor.add_losses(
+    def _account(self, stats: dict[str, float]) -> None:
+        assert self.monitor is not None
+        self.monitor.add_episodes(*(np.array([stats[k]]) for k in ("success", "spl", "length", "reward")))
+        self.monitor.add_losses(
             stats["total"],
             stats["policy"],
             stats["value"],
             stats["entropy"] / max(stats["length"], 1),
             grad_norm=stats["grad_norm"],
         )
-        monitor.advance(self.counters["episodes"], self.counters["frames"])
-        every = self.config.checkpoint_every
-        if self.counters["episodes"] // every > before // every and not self._budget_reached():
-            self._checkpoint()
+        self._count(1, int(stats["length"]))

@@ -1,0 +1,260 @@
+"""An experiment's records (records.py) as its report: ``EXPERIMENT.md``, ``EXPERIMENT.json`` and
+the figures' PNGs (and GIF) in one folder. Nothing here trains or evaluates."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from mapless.config import to_dict
+from mapless.evaluate.report import (
+    COLUMNS,
+    MAIN_COLUMNS,
+    ROOM_NAMES,
+    details_table,
+    format_difference,
+    format_estimate,
+    markdown,
+    model_table,
+    room_table,
+    write_json,
+)
+from mapless.experiments.config import ROOM_ABBREV
+from mapless.experiments.records import Figure3, Figures45, LayoutShift, Setting, Table1, Table2, Table3
+from mapless.files import write_text
+
+#: What a renderer returns: the JSON payload and the markdown lines (figures are written on the way).
+Rendered = tuple[dict, list[str]]
+
+
+def write_report(experiment: str, record: object, out: Path, command: str) -> dict:
+    """Write ``out/<experiment>.json`` and ``.md`` (and the figures) of one experiment's record;
+    returns the payload and the markdown."""
+    renderer: Callable[..., Rendered] = RENDERERS[type(record)]
+    payload, lines = renderer(experiment, record, out, command)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(payload, out / f"{experiment}.json")
+    write_text(out / f"{experiment}.md", "\n".join(lines))
+    return {"payload": payload, "markdown": "\n".join(lines)}
+
+
+def _header(setting: Setting, title: str, command: str) -> list[str]:
+    config = setting.config
+    return [
+        f"# {title}",
+        "",
+        f"Budget `{config.budget}`, {config.seeds} training seed(s); {setting.report_episodes} report episodes "
+        f"({config.eval.per_room} per room type); protocol: {setting.protocol_label}.",
+        f"Command: `{command}`; finished {time.strftime('%Y-%m-%d %H:%M')}.",
+        "Cells: mean (± std over seeds) [95 % bootstrap interval over episodes], in %.",
+        "",
+    ]
+
+
+def _payload(experiment: str, setting: Setting, **results) -> dict:
+    return {
+        "experiment": experiment,
+        "config": to_dict(setting.config),
+        "protocol": setting.protocol_label,
+        **results,
+    }
+
+
+def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered:
+    records = record.models
+    lines = _header(record.setting, "Table 1: navigation results on unseen scenes", command)
+    lines += [model_table(records), "", *_focus_differences(record.setting.config.focus, records)]
+    lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
+    for rec in records:
+        lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
+    return _payload(experiment, record.setting, models=records), lines
+
+
+def _focus_differences(focus: str, records: list[dict]) -> list[str]:
+    """Table 1's comparison of the focus model with each other model, if it has one."""
+    key = "focus_minus_model"
+    rows = [
+        [rec["model"], *(format_difference(c, rec[key][c]) for c in MAIN_COLUMNS)]
+        for rec in records
+        if key in rec
+    ]
+    if not rows:
+        return []
+    header = ["model", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    return [
+        f"{focus} minus each model, in points, with the 95 % interval of the difference over episodes "
+        "(paired: the same episodes) and each model's training seeds:",
+        "",
+        markdown(header, rows),
+        "",
+    ]
+
+
+def table2(experiment: str, record: Table2, out: Path, command: str) -> Rendered:
+    """Rows: model x training room type; columns: SR / SPL on each test room type and overall."""
+    rooms = record.setting.config.eval.rooms
+    header = ["model", "trained on", *(f"{ROOM_NAMES[r]} SR / SPL" for r in rooms), "All SR / SPL"]
+    rows = []
+    for row in record.rows:
+        cells = [_pair(row.record["rooms"].get(r)) for r in rooms]
+        rows.append(
+            [row.model, f"{ROOM_ABBREV[row.train_room]}-single", *cells, _pair(row.record["estimates"])]
+        )
+    lines = _header(
+        record.setting, "Table 2: generalisation across room types (train on one, test on all)", command
+    )
+    lines += [markdown(header, rows), ""]
+    return _payload(experiment, record.setting, runs=[row.record for row in record.rows]), lines
+
+
+def _pair(estimates: dict | None) -> str:
+    """``SR [95 % interval] / SPL`` of one cell (the SPL interval is left to the JSON, for width)."""
+    if not estimates:
+        return "–"
+    return f"{format_estimate('success', estimates['success'])} / {format_estimate('spl', estimates['spl'], False)}"
+
+
+def table3(experiment: str, record: Table3, out: Path, command: str) -> Rendered:
+    records, rooms = record.models, record.setting.config.eval.rooms
+    header = ["model", *(f"{ROOM_NAMES[r]} SR / SPL" for r in rooms), "All SR / SPL"]
+    rows = [
+        [rec["model"], *(_pair(rec["rooms"].get(r)) for r in rooms), _pair(rec["estimates"])]
+        for rec in records
+    ]
+    lines = _header(record.setting, "Table 3: ablation of the hierarchical relationships", command)
+    lines += [
+        "Each `<Room>_no_relationships` run drops the target->parent edges that only that room type's hierarchy adds to the graph (pairs the VG graph or another room type also links stay) and its parent-object reward.",
+        "",
+        markdown(header, rows),
+        "",
+        model_table(records),
+        "",
+        "Each ablation minus the full model, in points, with the 95 % interval of the difference over "
+        "episodes (paired: the same episodes) and both runs' training seeds; the paper's claim is a "
+        "drop, largest on the room type whose relationships were removed:",
+        "",
+        markdown(
+            ["model", "Δ SR", "Δ SPL", "Δ SR, its room type", "Δ SPL, its room type"],
+            [
+                [rec["model"], *_ablation_cells(rec["minus_full"], rec["removed_room"])]
+                for rec in records
+                if "minus_full" in rec
+            ],
+        ),
+        "",
+    ]
+    return _payload(experiment, record.setting, models=records), lines
+
+
+def _ablation_cells(minus_full: dict, room: str) -> list[str]:
+    return [format_difference(c, minus_full[part][c]) for part in ("all", room) for c in ("success", "spl")]
+
+
+def figure3(experiment: str, record: Figure3, out: Path, command: str) -> Rendered:
+    from mapless.evaluate.figures import exploration_figure
+
+    # The figure's Table 1 (its models, its runs) beside it, in table1/.
+    write_report("table1", record.table1, out / "table1", command)
+    pooled = {m: [r for seed in per_seed for r in seed] for m, per_seed in record.table1.results.items()}
+    curves = exploration_figure(pooled, out / "figure3_exploration.png")
+    lines = [
+        "# Figure 3: ratio of exploration",
+        "",
+        "Distinct states explored / steps taken, per step index, averaged over the episodes still running.",
+        f"Command: `{command}`.",
+        "",
+        "![ratio of exploration](figure3_exploration.png)",
+        "",
+        markdown(
+            ["model", "final ratio (episode mean)"],
+            [[m, format_estimate("exploration_ratio", e)] for m, e in record.final_ratio.items()],
+        ),
+        "",
+    ]
+    payload = {
+        "experiment": experiment,
+        "curves": curves,
+        "final_ratio": {m: e.to_dict() for m, e in record.final_ratio.items()},
+    }
+    return payload, lines
+
+
+def figures45(experiment: str, record: Figures45, out: Path, command: str) -> Rendered:
+    from mapless.evaluate.figures import trajectory_figure, trajectory_gif
+
+    write_report("table1", record.table1, out / "table1", command)
+    library = record.scenes.build()
+    focus, gif = record.focus, record.table1.setting.config.gif
+    lines = ["# Figures 4 and 5: trajectories", "", f"Command: `{command}`.", ""]
+    figures = {}
+    for figure in record.figures:
+        name, caption = figure.name, figure.caption
+        if figure.index is None:
+            lines += [f"No episode for {name} ({caption}) in this run.", ""]
+            continue
+        episode, parents = figure.results[focus], figure.parents
+        trajectory_figure(figure.results, library, out / f"{name}.png", parents=parents)
+        figures[name] = {"index": figure.index, "episode_id": episode.episode_id, "scene": episode.scene, "target": episode.target,
+                         "parents": list(parents), "outcomes": {m: {"success": r.success, "length": r.length} for m, r in figure.results.items()}}  # fmt: skip
+        lines += [f"## {name}: {caption}", "", f"{episode.scene}, target {episode.target}, parents {', '.join(parents) or '–'}.", "",
+                  f"![{name}]({name}.png)", ""]  # fmt: skip
+        if gif and name == "figure4_trajectories":
+            trajectory_gif(episode, library, out / f"{name}_{focus}.gif", every=1)
+            lines += [f"Egocentric views of {focus}: `{name}_{focus}.gif`.", ""]
+    return {"experiment": experiment, "figures": figures}, lines
+
+
+def layout_shift(experiment: str, record: LayoutShift, out: Path, command: str) -> Rendered:
+    """Rows ``model | trained on | tested on``; then the paired differences."""
+    config = record.setting.config
+    shift = config.eval.shift_file or config.eval.shift_layouts
+    lines = _header(record.setting, "Layout shift: the test floor plans under other arrangements", command)
+    lines += [
+        f"Shifted set: {record.shifted_episodes} episodes on the test floor plans under `{shift}`; "
+        f"variant training: `env.layouts` = {config.variant_layouts}.",
+        "Rows `model | trained on | tested on`; selection on val under the default arrangements.",
+        "",
+        model_table(record.models),
+        "",
+        "Trained on variants minus trained on default arrangements, in points, paired over the same "
+        "episodes (and seeds):",
+        "",
+        _comparison_table(record.variants_minus_default),
+        "",
+        f"{config.focus} minus each model, on the default and on the shifted test set (paired): does its "
+        "advantage grow or vanish when objects move?",
+        "",
+        _comparison_table(record.focus_minus_model),
+        "",
+    ]
+    payload = _payload(
+        experiment,
+        record.setting,
+        models=record.models,
+        variants_minus_default=record.variants_minus_default,
+        focus_minus_model=record.focus_minus_model,
+    )
+    return payload, lines
+
+
+def _comparison_table(comparisons: list[dict]) -> str:
+    """One row per ``{"comparison", "test_on", **difference_record}``: its paired differences."""
+    if not comparisons:
+        return "(none)"
+    header = ["comparison", "tested on", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    rows = [
+        [d["comparison"], d["test_on"], *(format_difference(c, d[c]) for c in MAIN_COLUMNS)]
+        for d in comparisons
+    ]
+    return markdown(header, rows)
+
+
+RENDERERS: dict[type, Callable[..., Rendered]] = {
+    Table1: table1,
+    Table2: table2,
+    Table3: table3,
+    Figure3: figure3,
+    Figures45: figures45,
+    LayoutShift: layout_shift,
+}

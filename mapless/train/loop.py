@@ -1,0 +1,136 @@
+"""The loop every trainer runs (batched, PPO, Hogwild): counters, the budget (episodes, frames,
+wall-clock), the checkpoint schedule, the run's monitor, a graceful stop on Ctrl-C or SIGTERM and
+the run summary. A trainer supplies only what differs: how it sets up (``_setup``), one unit of
+work counted with ``_count`` (``_train_step``), its random streams for the checkpoint
+(``_rng_states``) and, if it has any, the processes it starts and stops around the loop."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from mapless import checkpoint as ckpt
+from mapless.train.config import TrainConfig
+from mapless.train.monitor import RunMonitor, run_summary
+from mapless.train.runtime import GracefulStop
+
+
+class TrainingLoop:
+    """Owns the run from setup to summary; subclasses set ``model`` and ``optimizer`` in ``_setup``."""
+
+    label = "trainer"  # the progress bar's and the logs' name for the trainer
+    model: Any
+    optimizer: Any
+
+    def __init__(self, config: TrainConfig, run_dir: Path | None):
+        self.config = config
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.counters = {"episodes": 0, "frames": 0, "updates": 0}
+        self._clock = time.perf_counter()
+        self._snapshot_due = False  # the last update crossed a checkpoint_every boundary, not yet written
+        self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
+
+    # -- what a trainer supplies -----------------------------------------------------------------
+    def _setup(self, resume: dict | None) -> None:
+        """Build the model, optimizer and environments; restore ``resume`` (a loaded checkpoint)."""
+        raise NotImplementedError
+
+    def _train_step(self, stop_requested: bool) -> bool:
+        """One unit of work, counted with :meth:`_count`; True to stop (a graceful stop, agreed
+        wherever the trainer has several processes to agree with)."""
+        raise NotImplementedError
+
+    def _rng_states(self) -> tuple[list[dict], int]:
+        """The random streams a checkpoint keeps (one per rank) and the number of ranks."""
+        return [], 1
+
+    def _start(self) -> None:
+        """Start what runs beside the loop (the Hogwild workers)."""
+
+    def _end(self) -> None:
+        """Stop what :meth:`_start` started; called once the loop ends and again on the way out."""
+
+    # -- the shared part -------------------------------------------------------------------------
+    def _out_of_time(self) -> bool:
+        """The wall-clock budget is spent, by this process's clock."""
+        cfg = self.config
+        return cfg.max_seconds > 0 and time.perf_counter() - self._clock >= cfg.max_seconds
+
+    def _budget_reached(self) -> bool:
+        cfg = self.config
+        return (
+            (cfg.episodes > 0 and self.counters["episodes"] >= cfg.episodes)
+            or (cfg.frames > 0 and self.counters["frames"] >= cfg.frames)
+            or self._out_of_time()
+        )
+
+    def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
+        rngs, world_size = self._rng_states()  # may be collective: every rank gets here
+        if self.run_dir is None:
+            return
+        ckpt.save_run_state(
+            self.run_dir,
+            self.model,
+            self.optimizer,
+            self.config,
+            self.counters,
+            rngs,
+            world_size,
+            final,
+            snapshot,
+            self.monitor.state() if self.monitor is not None else None,
+        )
+
+    def _count(self, episodes: int, frames: int, stop_requested: bool = False) -> bool:
+        """Advance the counters by one update's episodes and frames (over all ranks), log, and
+        checkpoint on schedule. Returns True to stop (the checkpoint is then the caller's)."""
+        assert self.monitor is not None, "_count runs inside run()"
+        before = self.counters["episodes"]
+        self.counters["episodes"] += episodes
+        self.counters["frames"] += frames
+        self.counters["updates"] += 1
+        self.monitor.advance(self.counters["episodes"], self.counters["frames"])
+        every = self.config.checkpoint_every
+        self._snapshot_due = self.counters["episodes"] // every > before // every
+        if stop_requested:
+            return True
+        if self._snapshot_due and not self._budget_reached():
+            self._checkpoint()
+            self._snapshot_due = False
+        return False
+
+    def run(self, resume: dict | None = None) -> dict[str, float]:
+        """Train until the budget or a graceful stop; ``resume`` is a loaded checkpoint
+        (:func:`checkpoint.load_file`). Returns :func:`~mapless.train.monitor.run_summary`."""
+        self._setup(resume)
+        monitor = self.monitor = RunMonitor.for_run(
+            self.run_dir, self.config, self.counters, self.label, resume
+        )
+        start, start_frames, start_updates = (
+            time.perf_counter(),
+            self.counters["frames"],
+            self.counters["updates"],
+        )
+        self._clock = start
+        first: tuple[float, int] | None = None  # after the first update (warm-up excluded from steady rates)
+        stopped = False
+        try:
+            self._start()
+            with GracefulStop() as stop:
+                while not self._budget_reached():
+                    stopped = self._train_step(stop.requested)
+                    if first is None and self.counters["updates"] > start_updates:
+                        first = (time.perf_counter(), self.counters["frames"])
+                    if stopped:
+                        break
+            loop_end = time.perf_counter()
+            self._end()
+            # A stop writes a snapshot only where the schedule puts one (its update crossed it).
+            self._checkpoint(final=not stopped, snapshot=not stopped or self._snapshot_due)
+        finally:
+            self._end()
+            monitor.close(partial_record=not stopped)
+        return run_summary(
+            self.counters, start, start_frames, first, loop_end, monitor.running_success, stopped
+        )

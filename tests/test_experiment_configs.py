@@ -1,0 +1,62 @@
+"""The shipped experiment configs: each experiment file read over its budget's file resolves to
+exactly the configuration the one-file-per-experiment-and-budget layout gave (captured in
+tests/data/experiment_configs_resolved.json before the split; since then only the small budget's
+imitation warm start and every baseline's target_context, the layout-shift experiment and the
+fields it added), and the composition rule itself."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mapless.config import ConfigError, to_dict
+from mapless.errors import UnknownNameError
+from mapless.experiments import BUDGETS, EXPERIMENTS, config_path, load_experiment, read_experiment
+
+RESOLVED = json.loads((Path(__file__).parent / "data" / "experiment_configs_resolved.json").read_text())
+
+
+#: Every shipped experiment file (layout_shift has none at the full budget).
+SHIPPED = [(e, b) for e in EXPERIMENTS for b in BUDGETS if config_path(e, b).is_file()]
+
+
+def test_every_shipped_experiment_file_has_captured_values() -> None:
+    assert {f"{e}_{b}" for e, b in SHIPPED} == set(RESOLVED)
+
+
+@pytest.mark.parametrize("experiment, budget", SHIPPED)
+def test_every_experiment_and_budget_resolves_as_before(experiment: str, budget: str) -> None:
+    # read_experiment does not build the runs' TrainConfigs, which the full budget's device: cuda
+    # would refuse on a machine without a GPU.
+    assert to_dict(read_experiment(config_path(experiment, budget))) == RESOLVED[f"{experiment}_{budget}"]
+
+
+def test_figures_share_table1s_runs_folder_and_training() -> None:
+    table1, figure3 = load_experiment("table1", "small"), load_experiment("figure3", "small")
+    for key in ("runs_dir", "train", "per_model", "eval", "seeds"):
+        assert getattr(figure3, key) == getattr(table1, key), key
+
+
+def test_an_experiment_key_replaces_the_budgets_key_whole_and_overrides_apply_last(tmp_path: Path) -> None:
+    path = tmp_path / "table1.yaml"
+    path.write_text("experiment: table1\nbudget: smoke\ntrain: {episodes: 8}\nmodels: [a3c]\n")
+    config = read_experiment(path, ["eval.per_room=2"])
+    assert config.train == {"episodes": 8}  # not merged with the budget's training block
+    assert config.eval.per_room == 2 and config.eval.batch_size == 16  # the rest of smoke's eval
+    assert config.runs_dir == "runs/experiments/smoke"
+
+
+def test_a_file_naming_no_budget_stands_alone_and_an_unknown_budget_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "table1.yaml"
+    path.write_text("experiment: table1\nmodels: [a3c]\n")
+    assert read_experiment(path).runs_dir == "runs/experiments"  # the dataclass default
+    path.write_text("experiment: table1\nbudget: huge\n")
+    with pytest.raises(UnknownNameError, match="huge"):
+        read_experiment(path)
+
+
+def test_a_misspelt_per_model_name_is_refused_on_load() -> None:
+    with pytest.raises(ConfigError, match="cvmta"):
+        load_experiment("table1", "smoke", overrides=["per_model.cvmta.episodes=8"])
