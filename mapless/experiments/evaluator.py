@@ -67,7 +67,9 @@ class Evaluator:
 
         return str(resolve_model_file(run_dir))
 
-    def on(self, episodes: list[Episode], model: str, train_cfg=None, checkpoint: str | None = None) -> list[EpisodeResult]:
+    def on(
+        self, episodes: list[Episode], model: str, train_cfg=None, checkpoint: str | None = None
+    ) -> list[EpisodeResult]:
         """One agent (an untrained ``model``, or a ``checkpoint`` of a run) on other ``episodes``."""
         if checkpoint is None:
             return evaluate(AgentSpec(model={"name": model}), episodes, self.settings, self.scenes).results

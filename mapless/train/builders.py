@@ -58,7 +58,12 @@ def reward_config(config: TrainConfig) -> RewardConfig:
 def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:
     env = config.env
     return TrainingSampler(
-        library, env.scene_list(), env.target_set, seed=seed, variants=env.variant_map(), variant_fraction=env.layouts.fraction
+        library,
+        env.scene_list(),
+        env.target_set,
+        seed=seed,
+        variants=env.variant_map(),
+        variant_fraction=env.layouts.fraction,
     )
 
 

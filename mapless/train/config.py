@@ -70,7 +70,9 @@ class LayoutsConfig:
 
         found = {s: variants_of(s, self.source, self.per_scene) for s in scenes if "@" not in s}
         empty = [s for s, names in found.items() if not names]
-        _require(not empty, "env.layouts.source", f"{self.source!r} has no arrangement of {', '.join(empty[:5])}")
+        _require(
+            not empty, "env.layouts.source", f"{self.source!r} has no arrangement of {', '.join(empty[:5])}"
+        )
         return found
 
 
