@@ -6,6 +6,7 @@ work counted with ``_count`` (``_train_step``), its random streams for the check
 
 from __future__ import annotations
 
+import abc
 import time
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ from mapless.train.monitor import RunMonitor, run_summary
 from mapless.train.runtime import GracefulStop
 
 
-class TrainingLoop:
+class TrainingLoop(abc.ABC):
     """Owns the run from setup to summary; subclasses set ``model`` and ``optimizer`` in ``_setup``."""
 
     label = "trainer"  # the progress bar's and the logs' name for the trainer
@@ -32,24 +33,26 @@ class TrainingLoop:
         self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
 
     # -- what a trainer supplies -----------------------------------------------------------------
+    @abc.abstractmethod
     def _setup(self, resume: dict | None) -> None:
         """Build the model, optimizer and environments; restore ``resume`` (a loaded checkpoint)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _train_step(self, stop_requested: bool) -> bool:
         """One unit of work, counted with :meth:`_count`; True to stop (a graceful stop, agreed
         wherever the trainer has several processes to agree with)."""
-        raise NotImplementedError
 
     def _rng_states(self) -> tuple[list[dict], int]:
         """The random streams a checkpoint keeps (one per rank) and the number of ranks."""
         return [], 1
 
     def _start(self) -> None:
-        """Start what runs beside the loop (the Hogwild workers)."""
+        """Start what runs beside the loop (the Hogwild workers); nothing by default."""
+        return
 
     def _end(self) -> None:
         """Stop what :meth:`_start` started; called once the loop ends and again on the way out."""
+        return
 
     # -- the shared part -------------------------------------------------------------------------
     def _out_of_time(self) -> bool:
