@@ -24,6 +24,7 @@ import json
 import zlib
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -145,16 +146,9 @@ def dumps(
     return buffer.getvalue()
 
 
-def save(
-    path: Path,
-    episodes: list[Episode],
-    split: str,
-    target_set: str,
-    seed: int,
-    sim_fingerprint: str,
-    layouts: str | None = None,
-) -> None:
-    write_bytes(path, dumps(episodes, split, target_set, seed, sim_fingerprint, layouts))
+def save(path: Path, *args: Any, **kwargs: Any) -> None:
+    """Write :func:`dumps` of the same arguments atomically to ``path``."""
+    write_bytes(path, dumps(*args, **kwargs))
 
 
 def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[list[Episode], dict]:
