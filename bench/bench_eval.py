@@ -29,7 +29,7 @@ def masked_agent(name: str, batch_size: int, bf16: bool = False, hidden: int = 5
     """An evaluation agent of a fresh ``name`` model that never calls Done."""
     import torch
 
-    from mapless.evaluate.runner import AdaptiveModelAgent, ModelAgent
+    from mapless.agent.evaluation import AdaptiveModelAgent, ModelAgent
     from mapless.models import build_model
 
     torch.manual_seed(0)

@@ -61,8 +61,9 @@ def val_subset(count: int):
 
 def evaluate_policy(model, library, episodes) -> dict[str, float]:
     """SR, SPL and their L>=5 parts of ``model`` (a copy is evaluated) on ``episodes``."""
+    from mapless.agent.evaluation import AdaptiveModelAgent, ModelAgent
     from mapless.evaluate.metrics import aggregate
-    from mapless.evaluate.runner import AdaptiveModelAgent, EvalSettings, ModelAgent, run_episodes
+    from mapless.evaluate.runner import EvalSettings, run_episodes
 
     model = copy.deepcopy(model).cpu().eval()  # a GPU-trained policy is evaluated on the CPU
     batch = 32

@@ -9,7 +9,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from train_fixtures import fixture_library, tiny_config
 
-from mapless.evaluate.runner import EvalSettings, ModelAgent, run_episodes
+from mapless.agent.evaluation import ModelAgent
+from mapless.evaluate.runner import EvalSettings, run_episodes
 from mapless.models import registry
 from mapless.models.base import (
     NUM_ACTIONS,

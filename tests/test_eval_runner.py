@@ -10,13 +10,12 @@ import pytest
 import torch
 from eval_fixtures import fixture_episodes, fixture_library
 
+from mapless.agent.evaluation import AdaptiveModelAgent, ModelAgent, OracleAgent
 from mapless.evaluate.metrics import aggregate
 from mapless.evaluate.runner import (
-    AdaptiveModelAgent,
     AgentSpec,
     EvalSettings,
     LibrarySpec,
-    ModelAgent,
     evaluate,
     partition,
     run_episodes,
@@ -174,7 +173,6 @@ def test_adaptive_model_evaluates_end_to_end(episodes):
 
 
 def test_run_episodes_in_process_matches_oracle_lengths(episodes):
-    from mapless.evaluate.runner import OracleAgent
 
     results = run_episodes(
         OracleAgent(4), fixture_library(), episodes[:6], [10, 11, 12, 13, 14, 15], EvalSettings(batch_size=4)

@@ -1,8 +1,8 @@
 """The batched trainer computes, episode by episode, what the async (per-episode) trainer computes.
 
-Both rollouts play the same episodes with the same per-episode action noise: the batched one in
-BatchedNavEnv with one forward per step for all episodes (and the vmapped inner loop for adaptive
-models), the per-episode one in the gymnasium NavEnv at batch size 1. Their per-episode A3C losses,
+Both rollouts play the same episodes with the same per-episode action noise through the same loop:
+the batched one with one forward per step for all episodes (and the vmapped inner loop for adaptive
+models), the per-episode one at batch size 1. Their per-episode A3C losses,
 per-episode gradients and the batch's mean gradient must agree (float32 round-off aside).
 """
 
@@ -14,7 +14,6 @@ import torch
 from train_fixtures import fixture_library, tiny_config
 
 from mapless.agent.acting import observation_keys
-from mapless.sim.env import NavEnv
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.builders import new_model, reward_config, target_fields, training_sampler
 from mapless.train.gradients import trainable
@@ -23,7 +22,6 @@ from mapless.train.rollout import (
     episode_losses,
     make_actor,
     run_batch,
-    run_episode,
 )
 
 B = 3
@@ -63,15 +61,15 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
     keys = observation_keys(model)
     targets, rewards = target_fields(config), reward_config(config)
 
-    # Per episode, as an async worker computes it.
-    single_env = NavEnv(
-        library, episodes=episodes, targets=targets, rewards=rewards, max_steps=config.env.max_steps
+    # Per episode, as an async worker computes it (batch size 1).
+    single_env = BatchedNavEnv(
+        library, config.env.scene_list(), 1, targets=targets, rewards=rewards, max_steps=config.env.max_steps
     )
     single_losses, single_grads, lengths = [], [], []
     for b, episode in enumerate(episodes):
         actor = make_actor(model, first_order)
         model.zero_grad(set_to_none=True)
-        trajectory = run_episode(actor, single_env, episode, noise[b], keys, CPU)
+        trajectory = run_batch(actor, single_env, [episode], noise[b : b + 1], keys, CPU)
         single_losses.append(accumulate_gradients(actor, trajectory, config.loss).total.detach()[0])
         single_grads.append(_grads(model))
         lengths.append(int(trajectory.length[0]))

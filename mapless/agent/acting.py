@@ -8,8 +8,7 @@ import torch
 from torch import Tensor
 
 from mapless.models.base import NUM_ACTIONS, NavModel
-
-OBS_KEYS = ("context", "features", "target_embedding", "target_index")
+from mapless.sim.vector import OBSERVATION_KEYS
 
 
 class _RecordingObs(dict):
@@ -44,7 +43,7 @@ def observation_keys(model: NavModel) -> tuple[str, ...]:
     with torch.no_grad():
         model(probe, model.initial_state(1, device), torch.zeros(1, NUM_ACTIONS, device=device))
     model.train(was_training)
-    return tuple(k for k in OBS_KEYS if k in probe.read)
+    return tuple(k for k in OBSERVATION_KEYS if k in probe.read)
 
 
 def to_tensors(obs: dict[str, np.ndarray], device: torch.device, batch: bool = True) -> dict[str, Tensor]:

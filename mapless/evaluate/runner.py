@@ -2,6 +2,8 @@
 
 How it runs:
 
+* The agents (a model, an adaptive model, the oracle) are :mod:`mapless.agent.evaluation`'s; the
+  episodes run through the one episode loop (:class:`~mapless.agent.episode_loop.EpisodeLoop`).
 * Episodes are grouped by scene and the scenes split over ``workers`` spawn processes (each loads
   only its scenes; ``torch.set_num_threads(1)`` in each). A worker steps ``batch_size`` episodes in
   lockstep in one :class:`BatchedNavEnv`; a slot whose episode ends takes the next episode.
@@ -12,7 +14,7 @@ How it runs:
   SAVN/MJOLNIR evaluators do (``greedy=True`` takes the argmax instead).
 * Models run in ``eval()`` mode (dropout off) under ``inference_mode``. Adaptive models (savn, gve,
   spatt, cvmeta) adapt at test time as in training: every k = 6 steps, at most 4 times, one SGD step
-  of the non-``ll`` parameters on the learned interaction loss, with φ frozen, from the trained θ in
+  of the parameters the model's roles adapt on the learned interaction loss, with φ frozen, from the trained θ in
   every episode (:class:`mapless.agent.meta.InnerLoop` with ``meta_train=False``). Their inner steps
   are batched, so new episodes start only at k-step boundaries (a slot waits at most k - 1 steps).
 """
@@ -25,10 +27,12 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from mapless.agent.episode_loop import EpisodeLoop
+from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, OracleAgent
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.offline import offline_library
 from mapless.scenes.catalogue import room_type_of
@@ -36,173 +40,9 @@ from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
+from mapless.sim.scene_data import NUM_ACTIONS
 from mapless.sim.task import TargetFields, max_steps_for
 from mapless.sim.vector import BatchedNavEnv, BatchStep
-
-OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index")
-NUM_ACTIONS = 6
-
-
-class Agent(Protocol):
-    """What the runner drives. ``policy`` returns action probabilities ``[B, 6]`` for every slot."""
-
-    observation_keys: tuple[str, ...]
-    #: New episodes may start only when the global step count is a multiple of this (1: any step).
-    start_every: int
-
-    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None: ...
-
-    def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray: ...
-
-    def after_step(self, actions: np.ndarray, step: BatchStep) -> None: ...
-
-
-class ModelAgent:
-    """A recurrent :class:`~mapless.models.NavModel` without test-time adaptation."""
-
-    start_every = 1
-
-    def __init__(self, model, batch_size: int, bf16: bool = False):
-        import torch
-
-        self.torch = torch
-        self.batch_size = batch_size
-        self.bf16 = bf16
-        if bf16:
-            from mapless.agent.precision import keep_compiled_kernels
-
-            keep_compiled_kernels()
-        self.model = model.eval()
-        from mapless.agent.acting import observation_keys
-
-        # Gathering the feature map is the costly part of a step; skip it for models that ignore it.
-        self.observation_keys = observation_keys(model)
-        self.hidden = model.initial_state(batch_size)
-        self.prev_policy = torch.zeros(batch_size, NUM_ACTIONS)
-        # The parameters are fixed for the whole evaluation, so the object GCNs' results are reused
-        # across steps and episodes (mapless.models.memo).
-        from mapless.models.memo import InViewMemo
-
-        self.memo = InViewMemo()
-
-    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        index = self.torch.as_tensor(slots, dtype=self.torch.long)
-        for tensor in (*self.hidden, self.prev_policy):
-            tensor[index] = 0.0
-
-    def _tensors(self, obs: dict[str, np.ndarray]) -> dict:
-        return {k: self.torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
-
-    def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
-        torch = self.torch
-        with torch.inference_mode(), self.model.memoizing_in_view(self.memo):
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-                out = self.model(self._tensors(obs), self.hidden, self.prev_policy)
-            probs = torch.softmax(out.logits.float(), dim=-1)
-        # Clone out of inference mode so start() can write rows in place.
-        self.hidden = (out.hidden[0].float().clone(), out.hidden[1].float().clone())
-        self.prev_policy = probs.clone()
-        return probs.numpy()
-
-    def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
-        pass
-
-
-class AdaptiveModelAgent(ModelAgent):
-    """An adaptive model (learned interaction loss) with SAVN's test-time inner loop, φ frozen.
-
-    Every slot owns fast weights (θ, reset to the trained θ when an episode starts): the small ones as
-    per-slot copies, the LSTM matrices as θ plus the slot's low-rank inner-step factors, exactly as
-    in training (:class:`mapless.agent.meta.InnerLoop` with ``meta_train=False``). Episodes start at
-    k-step boundaries, so every slot's k-row buffer covers exactly its last k steps, computed with its
-    current fast weights, and one batched ``InnerLoop.adapt`` serves all slots due for a step.
-    """
-
-    def __init__(self, model, batch_size: int):
-        super().__init__(model, batch_size)
-        from mapless.agent.meta import InnerLoop
-
-        torch = self.torch
-        self.loop = InnerLoop(model, meta_train=False)
-        for p in model.parameters():
-            p.requires_grad_(False)  # θ and φ stay fixed; only the per-episode fast copies adapt
-        self.state = self.loop.start(batch_size)
-        self.k = self.loop.steps
-        self.start_every = self.k
-        self.alive = torch.zeros(batch_size, dtype=torch.bool)
-        self.output = None  # the last step's ModelOutput, for the inner loop's k-row buffer
-
-    @property
-    def updates(self) -> np.ndarray:
-        """Inner steps taken by each slot's current episode."""
-        return self.state.slot_updates.numpy()
-
-    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        torch = self.torch
-        index = torch.as_tensor(slots, dtype=torch.long)
-        self.loop.reset_slots(self.state, index)
-        with torch.no_grad():
-            for tensor in (*self.hidden, self.prev_policy):
-                tensor[index] = 0.0
-        self.alive[index] = True
-
-    def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
-        torch = self.torch
-        # The graph must reach the current fast weights; only k steps of it are ever kept.
-        with self.model.memoizing_in_view(self.memo):
-            self.output = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
-        probs = torch.softmax(self.output.logits, dim=-1)
-        self.hidden = self.output.hidden
-        self.prev_policy = probs
-        return probs.detach().numpy()
-
-    def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
-        self.alive &= ~self.torch.from_numpy(step.terminated | step.truncated)
-        # Every k steps the slots still running, and under their update limit, take an inner step.
-        self.loop.observe(self.state, self.output, self.alive)
-
-
-class OracleAgent:
-    """Follows a shortest path to the target and calls ``Done`` on arrival (SR = SPL = 1 by
-    construction): an upper bound and an end-to-end check of the metrics."""
-
-    observation_keys: tuple[str, ...] = ()
-    start_every = 1
-
-    def __init__(self, batch_size: int):
-        self.batch_size = batch_size
-        self.distances: list[np.ndarray | None] = [None] * batch_size
-
-    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        for slot in slots:
-            episode = env.episodes[slot]
-            data = env.library[episode.scene]
-            if episode.target_ids:
-                goal = data.goal_mask_for_instances(data.goal_instances(episode.target, episode.target_ids))
-                self.distances[slot] = data.distances_to(goal)
-            else:
-                self.distances[slot] = data.target_distances(episode.target)
-
-    def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
-        probs = np.zeros((env.batch_size, NUM_ACTIONS), dtype=np.float32)
-        for slot in range(env.batch_size):
-            dist = self.distances[slot]
-            episode = env.episodes[slot]
-            if dist is None or episode is None:
-                probs[slot, DONE] = 1.0
-                continue
-            data = env.library[episode.scene]
-            pose = int(env.pose[slot] - env.scene_offset[episode.scene])
-            action = DONE
-            if dist[pose] > 0:
-                nexts = data.successors[pose, :N_MOVEMENT_ACTIONS]
-                action = int(np.flatnonzero(dist[nexts] == dist[pose] - 1)[0])
-            probs[slot, action] = 1.0
-        return probs
-
-    def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
-        pass
 
 
 # -- agent and library specifications (picklable, rebuilt inside each worker) ---------------------
@@ -313,77 +153,76 @@ class EvalSettings:
     category_set: str = "mjolnir101"
 
 
-def run_episodes(
-    agent: Agent,
-    library: SceneLibrary,
-    episodes: Sequence[Episode],
-    indices: Sequence[int],
-    settings: EvalSettings,
-) -> list[EpisodeResult]:
-    """Run ``episodes`` (whose positions in the full set are ``indices``) to the end, in one process."""
-    batch = getattr(agent, "batch_size", settings.batch_size)
-    scenes = sorted({e.scene for e in episodes})
-    env = BatchedNavEnv(
-        library, scenes, batch, targets=target_fields(settings.category_set), mode="eval",
-        max_steps=settings.max_steps,
-    )  # fmt: skip
-    horizon = settings.max_steps or max(max_steps_for(library[s].room_type, "eval") for s in scenes)
-    queue = list(range(len(episodes)))
-    queue.reverse()  # pop() from the end takes episodes in set order
-    slot_item = np.full(batch, -1, dtype=np.int64)
-    uniforms = np.zeros((batch, horizon + 1))
-    poses = np.zeros((batch, horizon), dtype=np.int64)
-    actions_log = np.zeros((batch, horizon), dtype=np.int8)
-    failed = np.zeros(batch, dtype=np.int64)
-    reward = np.zeros(batch)
-    start_pose = np.zeros(batch, dtype=np.int64)
-    offsets = np.zeros(batch, dtype=np.int64)
-    results: list[EpisodeResult] = []
-    tick = 0
-    while True:
-        free = np.flatnonzero(slot_item < 0)
-        if len(free) and queue and tick % agent.start_every == 0:
-            slots = free[: len(queue)]
-            items = [queue.pop() for _ in slots]
-            env.reset(slots, [episodes[i] for i in items])
-            for slot, item in zip(slots, items, strict=True):
-                slot_item[slot] = item
-                uniforms[slot] = np.random.default_rng([settings.seed, int(indices[item])]).random(
-                    horizon + 1
-                )
-                offsets[slot] = env.scene_offset[episodes[item].scene]
-            start_pose[slots] = env.pose[slots] - offsets[slots]
-            failed[slots] = 0
-            reward[slots] = 0.0
-            agent.start(slots, env)
-        if not queue and not (slot_item >= 0).any():
-            break
-        # With every slot idle (an adaptive agent waiting for its next k-step boundary) the step
-        # below is a no-op for the environment but keeps the agent's k-step clock aligned.
-        obs = env.observe(agent.observation_keys) if agent.observation_keys else {}
-        probs = agent.policy(obs, env)
-        t = env.steps.copy()
-        if settings.greedy:
-            actions = probs.argmax(axis=1)
-        else:
-            cdf = np.cumsum(probs, axis=1, dtype=np.float64)
-            u = uniforms[np.arange(batch), np.minimum(t, horizon)] * cdf[:, -1]
-            actions = np.minimum((cdf <= u[:, None]).sum(axis=1), NUM_ACTIONS - 1)
-        step = env.step(actions)
-        agent.after_step(actions, step)
-        tick += 1
-        act = np.flatnonzero(step.active)
-        poses[act, t[act]] = env.pose[act] - offsets[act]
-        actions_log[act, t[act]] = actions[act]
-        failed += step.failed_action
-        reward += step.reward
-        for slot in np.flatnonzero(step.active & (step.terminated | step.truncated)):
-            item = int(slot_item[slot])
-            episode = episodes[item]
+class _Recorder:
+    """The :class:`~mapless.agent.episode_loop.LoopAgent` of :func:`run_episodes`: feeds the set's
+    episodes in order, samples ``agent``'s actions from each episode's own uniforms and records every
+    finished episode as an :class:`EpisodeResult`."""
+
+    def __init__(
+        self,
+        agent: Agent,
+        episodes: Sequence[Episode],
+        indices: Sequence[int],
+        settings: EvalSettings,
+        batch: int,
+        horizon: int,
+    ):
+        self.agent, self.episodes, self.indices, self.settings = agent, episodes, indices, settings
+        self.observation_keys = agent.observation_keys
+        self.horizon = horizon
+        self.queue = list(range(len(episodes)))
+        self.queue.reverse()  # pop() from the end takes episodes in set order
+        self.slot_item = np.full(batch, -1, dtype=np.int64)
+        self.uniforms = np.zeros((batch, horizon + 1))
+        self.poses = np.zeros((batch, horizon), dtype=np.int64)
+        self.actions = np.zeros((batch, horizon), dtype=np.int8)
+        self.failed = np.zeros(batch, dtype=np.int64)
+        self.reward = np.zeros(batch)
+        self.start_pose = np.zeros(batch, dtype=np.int64)
+        self.offsets = np.zeros(batch, dtype=np.int64)
+        self.results: list[EpisodeResult] = []
+
+    def feed(self, free: np.ndarray) -> list[Episode]:
+        items = [self.queue.pop() for _ in free[: len(self.queue)]]
+        self.slot_item[free[: len(items)]] = items
+        return [self.episodes[i] for i in items]
+
+    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
+        for slot in slots:
+            item = int(self.slot_item[slot])
+            seed = [self.settings.seed, int(self.indices[item])]
+            self.uniforms[slot] = np.random.default_rng(seed).random(self.horizon + 1)
+            self.offsets[slot] = env.scene_offset[self.episodes[item].scene]
+        self.start_pose[slots] = env.pose[slots] - self.offsets[slots]
+        self.failed[slots] = 0
+        self.reward[slots] = 0.0
+        self.agent.start(slots, env)
+
+    def act(self, obs: dict[str, np.ndarray], slots: np.ndarray, env: BatchedNavEnv) -> np.ndarray:
+        # With every slot idle (an adaptive agent waiting for its next k-step boundary) the step is a
+        # no-op for the environment but keeps the agent's k-step clock aligned.
+        probs = self.agent.policy(obs, env)
+        self.t = env.steps.copy()
+        if self.settings.greedy:
+            return probs.argmax(axis=1)
+        cdf = np.cumsum(probs, axis=1, dtype=np.float64)
+        u = self.uniforms[np.arange(len(probs)), np.minimum(self.t, self.horizon)] * cdf[:, -1]
+        return np.minimum((cdf <= u[:, None]).sum(axis=1), NUM_ACTIONS - 1)
+
+    def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
+        self.agent.after_step(actions, step)
+        t, act = self.t, np.flatnonzero(step.active)
+        self.poses[act, t[act]] = env.pose[act] - self.offsets[act]
+        self.actions[act, t[act]] = actions[act]
+        self.failed += step.failed_action
+        self.reward += step.reward
+        for slot in np.flatnonzero(step.terminated | step.truncated):
+            item = int(self.slot_item[slot])
+            episode = self.episodes[item]
             length = int(env.steps[slot])
-            results.append(
+            self.results.append(
                 EpisodeResult(
-                    index=int(indices[item]),
+                    index=int(self.indices[item]),
                     episode_id=episode.episode_id,
                     scene=episode.scene,
                     room_type=room_type_of(episode.scene),
@@ -392,15 +231,36 @@ def run_episodes(
                     length=length,
                     optimal_length=int(env.optimal_length[slot]),
                     called_done=bool(step.terminated[slot]),
-                    failed_actions=int(failed[slot]),
-                    reward=float(reward[slot]),
-                    start_pose=int(start_pose[slot]),
-                    poses=tuple(poses[slot, :length].tolist()),
-                    actions=tuple(actions_log[slot, :length].tolist()),
+                    failed_actions=int(self.failed[slot]),
+                    reward=float(self.reward[slot]),
+                    start_pose=int(self.start_pose[slot]),
+                    poses=tuple(self.poses[slot, :length].tolist()),
+                    actions=tuple(self.actions[slot, :length].tolist()),
                 )
             )
-            slot_item[slot] = -1
-    return sorted(results, key=lambda r: r.index)
+            self.slot_item[slot] = -1
+
+
+def run_episodes(
+    agent: Agent,
+    library: SceneLibrary,
+    episodes: Sequence[Episode],
+    indices: Sequence[int],
+    settings: EvalSettings,
+) -> list[EpisodeResult]:
+    """Run ``episodes`` (whose positions in the full set are ``indices``) to the end, in one process,
+    through the one episode loop (:class:`~mapless.agent.episode_loop.EpisodeLoop`): a slot whose
+    episode ends takes the next one of the set, at the agent's ``start_every`` boundaries."""
+    batch = getattr(agent, "batch_size", settings.batch_size)
+    scenes = sorted({e.scene for e in episodes})
+    env = BatchedNavEnv(
+        library, scenes, batch, targets=target_fields(settings.category_set), mode="eval",
+        max_steps=settings.max_steps,
+    )  # fmt: skip
+    horizon = settings.max_steps or max(max_steps_for(library[s].room_type, "eval") for s in scenes)
+    recorder = _Recorder(agent, episodes, indices, settings, batch, horizon)
+    EpisodeLoop(env, recorder, recorder.feed, start_every=agent.start_every).run()
+    return sorted(recorder.results, key=lambda r: r.index)
 
 
 # -- parallel evaluation ----------------------------------------------------------------------------

@@ -25,8 +25,8 @@ from mapless.knowledge import Knowledge, load_knowledge
 from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
+from mapless.sim.scene_data import NUM_ACTIONS as NUM_ACTIONS  # the policy's width, for every model
 
-NUM_ACTIONS = 6
 GRID = 7  # the 7x7 feature map of docs/observations.md (ResNet-18 conv5 size)
 EMBED = 64  # SAVN's per-cell embedding width, reused by every model that follows its layout
 

@@ -30,10 +30,9 @@ from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import ACTIONS, SceneData
 from mapless.sim.task import RewardConfig, TargetFields, resolve_target_fields
-from mapless.sim.vector import BatchedNavEnv
+from mapless.sim.vector import OBSERVATION_KEYS, BatchedNavEnv
 
 ENV_ID = "mapless/ObjectNav-v0"
-OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index")
 
 
 class NavEnv(gym.Env):

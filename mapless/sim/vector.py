@@ -28,6 +28,9 @@ from mapless.sim.task import (
     resolve_target_fields,
 )
 
+#: Every observation key a model can read (docs/observations.md).
+OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index")
+
 
 @dataclass
 class BatchStep:
@@ -212,9 +215,7 @@ class BatchedNavEnv:
         self.done = self.done | is_done | truncated
         return BatchStep(reward, is_done, truncated, success, failed, active)
 
-    def observe(
-        self, keys: tuple[str, ...] = ("context", "features", "target_embedding", "target_index")
-    ) -> dict:
+    def observe(self, keys: tuple[str, ...] = OBSERVATION_KEYS) -> dict:
         """Observation arrays of the current poses, float32 (docs/observations.md)."""
         out = {}
         for key in keys:

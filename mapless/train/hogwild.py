@@ -6,7 +6,7 @@ running can deadlock) and then only collects per-episode statistics, logs and ch
 worker loops::
 
     local model <- shared model
-    play one episode at batch size 1 in the gymnasium environment (rollout.run_episode)
+    play one episode at batch size 1 (rollout.run_batch, the batched trainer's loop at B = 1)
     backward the episode's A3C loss (through the inner loop for adaptive models)
     clip (non-adaptive models, norm 100), hand the gradients to the shared parameters, optimizer step
 
@@ -35,20 +35,18 @@ import torch.multiprocessing as mp
 
 from mapless.agent.acting import observation_keys
 from mapless.errors import MaplessError
-from mapless.sim.env import NavEnv
 from mapless.train.builders import (
     BuiltinLibrary,
     LibraryFactory,
     new_model,
-    reward_config,
-    target_fields,
+    training_env,
     training_sampler,
 )
 from mapless.train.config import TrainConfig
 from mapless.train.gradients import clip_gradients, fill_missing_gradients, trainable
 from mapless.train.loop import TrainingLoop
 from mapless.train.optim import SharedAdam
-from mapless.train.rollout import accumulate_gradients, make_actor, run_episode
+from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 from mapless.train.runtime import configure_torch, seed_for
 
 POLL_SECONDS = 0.2
@@ -77,17 +75,8 @@ def _worker(
         torch.manual_seed(seed)
         rng = np.random.default_rng(seed)
         library = library_factory()
-        for scene in config.env.all_scenes():  # load every scene up front, as the batched env does
-            library[scene]
         sampler = training_sampler(config, library, seed)
-        env = NavEnv(
-            library,
-            sampler=sampler,
-            targets=target_fields(config),
-            rewards=reward_config(config),
-            mode="train",
-            max_steps=config.env.max_steps,
-        )
+        env = training_env(config, library, batch_size=1)
         device = torch.device("cpu")
         local = new_model(config)
         actor = make_actor(local, first_order=config.meta.first_order, precision=config.precision)
@@ -101,9 +90,9 @@ def _worker(
                 return
             local.load_state_dict(shared_model.state_dict())
             episode = sampler.sample(rng)
-            noise = rng.random(config.env.max_steps)
+            noise = rng.random((1, config.env.max_steps))
             local.zero_grad(set_to_none=True)
-            trajectory = run_episode(actor, env, episode, noise, keys, device)
+            trajectory = run_batch(actor, env, [episode], noise, keys, device)
             losses = accumulate_gradients(actor, trajectory, config.loss)
             fill_missing_gradients(local)
             grad_norm = clip_gradients(local, config)

@@ -1,16 +1,14 @@
-"""Acting and the per-episode loss, shared by both trainers.
+"""Acting and the per-episode loss of the references' A3C recipe, shared by both of its trainers.
 
-Two rollout loops produce the same :class:`Trajectory` layout (``[T, B, ...]`` per step):
-
-* :func:`run_episode` plays one episode in the gymnasium :class:`~mapless.sim.env.NavEnv` at batch size
-  1, as a reference worker does (the ``async`` trainer);
-* :func:`run_batch` plays ``B`` episodes in lockstep in :class:`~mapless.sim.vector.BatchedNavEnv` with one
-  batched forward per step (the ``batched`` trainer).
+:func:`run_batch` plays ``B`` episodes in lockstep to their end through the one episode loop
+(:class:`~mapless.agent.episode_loop.EpisodeLoop`), with one batched forward per step of the episodes
+still running, and returns a :class:`Trajectory` (``[T, B, ...]`` per step). The ``batched`` trainer
+calls it with its batch; the ``async`` trainer's workers call it at B = 1, as a reference worker plays.
 
 Actions are drawn by inverse-CDF sampling from uniform noise that the caller draws per episode
 (``noise [B, T]``), so the action sequence of an episode depends only on its own noise row and its
-policy, not on how many episodes are stepped together. That is what makes the two loops comparable
-episode by episode (tests/test_train_equivalence.py).
+policy, not on how many episodes are stepped together. That is what makes the batch comparable
+episode by episode with B = 1 (tests/test_train_equivalence.py).
 """
 
 from __future__ import annotations
@@ -23,14 +21,15 @@ from torch import Tensor
 
 from mapless.agent.acting import sample_actions, to_tensors
 from mapless.agent.buffers import BufferPool
+from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.meta import InnerLoop, InnerLoopState
 from mapless.agent.precision import PRECISIONS, encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
+from mapless.evaluate.metrics import spl
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
 from mapless.models.memo import InViewMemo
-from mapless.sim.env import NavEnv
 from mapless.sim.episode import Episode
-from mapless.sim.vector import BatchedNavEnv
+from mapless.sim.vector import BatchedNavEnv, BatchStep
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
 from mapless.train.config import LossConfig
 
@@ -53,9 +52,9 @@ class Trajectory:
         return int(self.length.sum())
 
     def spl(self) -> np.ndarray:
-        opt = self.optimal_length.astype(np.float64)
-        ok = self.success & (opt > 0)
-        return np.where(ok, opt / np.maximum(self.length, np.maximum(opt, 1)), 0.0)
+        return np.array(
+            [spl(*episode) for episode in zip(self.success, self.length, self.optimal_length, strict=True)]
+        )
 
     def total_reward(self) -> np.ndarray:
         return (self.rewards * self.mask).sum(0).cpu().numpy()
@@ -153,21 +152,66 @@ def make_actor(model: NavModel, first_order: bool = False, precision: str = "fp3
     return Actor(model, inner, dtype)
 
 
-def _stack(
-    logits: list[Tensor],
-    values: list[Tensor],
-    actions: list[Tensor],
-    rewards: list[np.ndarray],
-    mask: list[np.ndarray],
-    device: torch.device,
-) -> tuple[Tensor, ...]:
-    return (
-        torch.stack(logits),
-        torch.stack(values).squeeze(-1),
-        torch.stack(actions),
-        torch.as_tensor(np.stack(rewards), device=device),
-        torch.as_tensor(np.stack(mask), device=device),
-    )
+class _LockstepRecorder:
+    """The :class:`~mapless.agent.episode_loop.LoopAgent` of :func:`run_batch`: acts through ``actor``
+    for the episodes still running and records every step as full ``[B]`` rows."""
+
+    def __init__(self, actor: Actor, noise: np.ndarray, obs_keys: tuple[str, ...], device: torch.device):
+        self.actor, self.device = actor, device
+        self.observation_keys = obs_keys
+        self.noise = torch.as_tensor(noise, dtype=torch.float32, device=device)
+        self.batch = noise.shape[0]
+        self.hidden = actor.model.initial_state(self.batch, device)
+        self.prev_policy = torch.zeros(self.batch, NUM_ACTIONS, device=device)
+        self.rows = torch.arange(self.batch, device=device)  # batch rows of the actor's current rows
+        self.output: ModelOutput | None = None
+        self.logits: list[Tensor] = []
+        self.values: list[Tensor] = []
+        self.actions: list[Tensor] = []
+        self.rewards: list[np.ndarray] = []
+        self.mask: list[np.ndarray] = []
+        self.success = np.zeros(self.batch, dtype=bool)
+
+    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
+        self.actor.start(self.batch)
+
+    def act(self, obs: dict[str, np.ndarray], slots: np.ndarray, env: BatchedNavEnv) -> np.ndarray:
+        if len(slots) < len(self.rows):  # episodes ended: drop their rows from the actor's state
+            keep = torch.as_tensor(
+                np.flatnonzero(np.isin(self.rows.cpu().numpy(), slots)), device=self.device
+            )
+            self.rows = self.rows.index_select(0, keep)
+            self.hidden = tuple(h.index_select(0, keep) for h in self.hidden)
+            self.prev_policy = self.prev_policy.index_select(0, keep)
+            self.actor.compact(keep)
+        self.output = self.actor.forward(to_tensors(obs, self.device), self.hidden, self.prev_policy)
+        t = len(self.logits)
+        return sample_actions(self.output.logits, self.noise[self.rows, t]).cpu().numpy()
+
+    def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
+        out, rows = self.output, self.rows
+        self.success |= step.success
+        self.logits.append(out.logits.new_zeros(self.batch, NUM_ACTIONS).index_copy(0, rows, out.logits))
+        self.values.append(out.value.new_zeros(self.batch, 1).index_copy(0, rows, out.value))
+        self.actions.append(torch.as_tensor(actions, device=self.device))
+        self.rewards.append(step.reward)
+        self.mask.append(step.active.astype(np.float32))
+        # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
+        self.hidden, self.prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        self.actor.observe(out, torch.as_tensor(~env.done[slots], device=self.device))
+
+    def trajectory(self, env: BatchedNavEnv) -> Trajectory:
+        device = self.device
+        return Trajectory(
+            torch.stack(self.logits),
+            torch.stack(self.values).squeeze(-1),
+            torch.stack(self.actions),
+            torch.as_tensor(np.stack(self.rewards), device=device),
+            torch.as_tensor(np.stack(self.mask), device=device),
+            success=self.success,
+            length=env.steps.copy(),
+            optimal_length=env.optimal_length.copy(),
+        )
 
 
 def run_batch(
@@ -180,89 +224,14 @@ def run_batch(
 ) -> Trajectory:
     """Play ``episodes`` to their end in lockstep (slot ``b`` uses ``noise[b, t]`` at step ``t``).
 
-    Only the episodes still running are stepped through the model (``slots``: their indices in the
-    batch); the per-step outputs are scattered back to full ``[B]`` rows, zero where an episode has
-    already ended (those entries have mask 0)."""
-    batch = len(episodes)
-    env.reset(np.arange(batch), episodes)
-    actor.start(batch)
-    hidden = actor.model.initial_state(batch, device)
-    prev_policy = torch.zeros(batch, NUM_ACTIONS, device=device)
-    noise_t = torch.as_tensor(noise, dtype=torch.float32, device=device)
-    slots = np.arange(batch)
-    slots_t = torch.as_tensor(slots, device=device)
-    logits, values, actions, rewards, mask = [], [], [], [], []
-    success = np.zeros(batch, dtype=bool)
-    for t in range(noise.shape[1]):
-        obs = {key: value[slots] for key, value in env.observe(obs_keys).items()}
-        out = actor.forward(to_tensors(obs, device), hidden, prev_policy)
-        action = sample_actions(out.logits, noise_t[slots_t, t])
-        full_action = torch.zeros(batch, dtype=torch.long, device=device).index_copy(0, slots_t, action)
-        step = env.step(full_action.cpu().numpy())
-        success |= step.success
-        logits.append(out.logits.new_zeros(batch, NUM_ACTIONS).index_copy(0, slots_t, out.logits))
-        values.append(out.value.new_zeros(batch, 1).index_copy(0, slots_t, out.value))
-        actions.append(full_action)
-        rewards.append(step.reward)
-        mask.append(step.active.astype(np.float32))
-        # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
-        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-        alive = ~env.done[slots]
-        actor.observe(out, torch.as_tensor(alive, device=device))
-        if not alive.any():
-            break
-        if not alive.all():
-            keep = torch.as_tensor(np.flatnonzero(alive), device=device)
-            slots, slots_t = slots[alive], slots_t.index_select(0, keep)
-            hidden = (hidden[0].index_select(0, keep), hidden[1].index_select(0, keep))
-            prev_policy = prev_policy.index_select(0, keep)
-            actor.compact(keep)
-    stacked = _stack(logits, values, actions, rewards, mask, device)
-    return Trajectory(
-        *stacked, success=success, length=env.steps.copy(), optimal_length=env.optimal_length.copy()
-    )
-
-
-def run_episode(
-    actor: Actor,
-    env: NavEnv,
-    episode: Episode,
-    noise: np.ndarray,
-    obs_keys: tuple[str, ...],
-    device: torch.device,
-) -> Trajectory:
-    """Play one episode at batch size 1, the way a reference worker does (``noise [T]``)."""
-    obs, info = env.reset(options={"episode": episode})
-    actor.start(1)
-    hidden = actor.model.initial_state(1, device)
-    prev_policy = torch.zeros(1, NUM_ACTIONS, device=device)
-    logits, values, actions, rewards, mask = [], [], [], [], []
-    success, steps = False, 0
-    for t in range(len(noise)):
-        out = actor.forward(
-            to_tensors({k: obs[k] for k in obs_keys}, device, batch=False), hidden, prev_policy
-        )
-        action = sample_actions(out.logits, torch.full((1,), float(noise[t]), device=device))
-        obs, reward, terminated, truncated, info = env.step(int(action))
-        steps += 1
-        success = bool(info["success"])
-        logits.append(out.logits)
-        values.append(out.value)
-        actions.append(action)
-        rewards.append(np.array([reward], dtype=np.float32))
-        mask.append(np.ones(1, dtype=np.float32))
-        hidden, prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
-        done = terminated or truncated
-        actor.observe(out, torch.tensor([not done], device=device))
-        if done:
-            break
-    stacked = _stack(logits, values, actions, rewards, mask, device)
-    return Trajectory(
-        *stacked,
-        success=np.array([success]),
-        length=np.array([steps]),
-        optimal_length=np.array([info["optimal_length"]]),
-    )
+    Only the episodes still running are stepped through the model; the per-step outputs are
+    scattered back to full ``[B]`` rows, zero where an episode has already ended (those entries have
+    mask 0). At B = 1 this is how a reference worker plays its episode (the ``async`` trainer)."""
+    recorder = _LockstepRecorder(actor, noise, obs_keys, device)
+    loop = EpisodeLoop(env, recorder, live_only=True)
+    loop.start(np.arange(len(episodes)), episodes)
+    loop.run(max_ticks=noise.shape[1])
+    return recorder.trajectory(env)
 
 
 def episode_losses(trajectory: Trajectory, config: LossConfig) -> A3CLoss:

@@ -27,12 +27,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mapless.agent.acting import sample_actions, to_tensors
+from mapless.agent.episode_loop import EpisodeLoop
 from mapless.episodes.sampler import TrainingSampler
 from mapless.evaluate.metrics import spl
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
 from mapless.models.memo import InViewMemo
 from mapless.sim.episode import Episode
-from mapless.sim.vector import BatchedNavEnv
+from mapless.sim.vector import BatchedNavEnv, BatchStep
 
 
 @dataclass
@@ -82,7 +83,11 @@ def _finished_rows(rows: list[tuple[bool, float, int, float]]) -> dict[str, np.n
 
 
 class SegmentCollector:
-    """Steps ``env`` (``N`` slots) with a model, refilling finished slots from ``sampler``."""
+    """Steps ``env`` (``N`` slots) with a model, refilling finished slots from ``sampler``.
+
+    It is the :class:`~mapless.agent.episode_loop.LoopAgent` of its own
+    :class:`~mapless.agent.episode_loop.EpisodeLoop`, which persists across segments (a slot's
+    episode in flight continues in the next segment)."""
 
     def __init__(
         self,
@@ -96,14 +101,22 @@ class SegmentCollector:
     ):
         """``expert``: record the shortest-path expert's action at every step (imitation)."""
         self.model, self.env, self.sampler = model, env, sampler
-        self.obs_keys, self.device = obs_keys, device
+        self.observation_keys, self.device = obs_keys, device
         self.whole_episodes = whole_episodes
         self.expert = expert
         n = env.batch_size
         self.hidden = model.initial_state(n, device)
         self.prev_policy = torch.zeros(n, NUM_ACTIONS, device=device)
         self.reward_sum = np.zeros(n)
-        self.needs_episode = np.ones(n, dtype=bool)
+        self.loop = EpisodeLoop(env, self, feed=self._feed)
+        # per collect(): the generator, the acting state and what is recorded
+        self._rng: np.random.Generator | None = None
+        self._opening = False
+        self._starts = np.zeros(n, dtype=bool)
+        self._actor: _AdaptingActor | None = None
+        self._memo: InViewMemo | None = None
+        self._record: dict[str, list] = {}
+        self._finished: list[tuple[bool, float, int, float]] = []
 
     # -- resumable state ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -118,7 +131,7 @@ class SegmentCollector:
             "hidden": [t.detach().cpu() for t in self.hidden],
             "prev_policy": self.prev_policy.cpu(),
             "reward_sum": torch.as_tensor(self.reward_sum),
-            "needs_episode": torch.as_tensor(self.needs_episode),
+            "needs_episode": torch.as_tensor(self.loop.free),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -133,131 +146,120 @@ class SegmentCollector:
         self.hidden = tuple(t.to(self.device) for t in state["hidden"])
         self.prev_policy = state["prev_policy"].to(self.device)
         self.reward_sum = state["reward_sum"].numpy().copy()
-        self.needs_episode = state["needs_episode"].numpy().copy()
+        self.loop.free[:] = state["needs_episode"].numpy()
 
     # -- collection ------------------------------------------------------------------------------
-    def _start_episodes(self, slots: np.ndarray, rng: np.random.Generator) -> None:
-        self.env.reset(slots, [self.sampler.sample(rng) for _ in slots])
-        index = torch.as_tensor(slots, device=self.device)
-        self.hidden = tuple(t.index_fill(0, index, 0.0) for t in self.hidden)
-        self.prev_policy = self.prev_policy.index_fill(0, index, 0.0)
-        self.reward_sum[slots] = 0.0
-        self.needs_episode[slots] = False
-
     def collect(self, steps: int, rng: np.random.Generator) -> Segment:
         """Act for ``steps`` steps (whole episodes: until every episode ended, at most ``steps``)."""
         n = self.env.batch_size
         if self.whole_episodes:
-            self.needs_episode[:] = True
-        memo = InViewMemo(max_rows=None)
-        actor = _AdaptingActor(self.model, n) if self.whole_episodes else None
+            self.loop.free[:] = True
+            self._opening = True
+            self._actor = _AdaptingActor(self.model, n)
+        self._rng, self._memo = rng, InViewMemo(max_rows=None)
         h0 = tuple(t.detach().clone() for t in self.hidden)
-        record: dict[str, list] = {k: [] for k in _RECORDED}
-        finished: list[tuple[bool, float, int, float]] = []
+        self._record = {k: [] for k in _RECORDED}
+        self._finished = []
         try:
-            next_value = self._run(steps, rng, actor, memo, record, finished)
+            self.loop.run(max_ticks=steps)
         finally:
-            if actor is not None:
-                actor.close()
+            if self._actor is not None:
+                self._actor.close()
+                self._actor = None
+        record = self._record
         stacked = {
             "obs": {k: torch.stack([o[k] for o in record["obs"]]) for k in record["obs"][0]},
             **{k: torch.stack(v) for k, v in record.items() if k != "obs"},
         }
-        return Segment(**stacked, hidden=h0, next_value=next_value, finished=_finished_rows(finished))
+        finished = _finished_rows(self._finished)
+        return Segment(**stacked, hidden=h0, next_value=self._next_value(), finished=finished)
 
-    def _run(
-        self,
-        steps: int,
-        rng: np.random.Generator,
-        actor: _AdaptingActor | None,
-        memo: InViewMemo,
-        record: dict[str, list],
-        finished: list,
-    ) -> Tensor:
-        """The acting loop of :meth:`collect`; returns V after the last step."""
-        model, env, device = self.model, self.env, self.device
-        n = env.batch_size
+    def _feed(self, free: np.ndarray) -> list[Episode]:
+        """New episodes for the free slots: at every step for segments, once for whole episodes."""
+        if self.whole_episodes and not self._opening:
+            return []
+        self._opening = False
+        return [self.sampler.sample(self._rng) for _ in free]
+
+    def _next_value(self) -> Tensor:
+        """V after the segment's last step (whole episodes: 0, every episode has ended)."""
+        n = self.env.batch_size
+        if self.whole_episodes:
+            return torch.zeros(n, device=self.device)
+        obs = to_tensors(self.env.observe(self.observation_keys), self.device)
+        with torch.no_grad(), self.model.memoizing_in_view(self._memo):
+            return self.model(obs, self.hidden, self.prev_policy).value.reshape(n)
+
+    # -- the loop's agent ----------------------------------------------------------------------------
+    def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
+        index = torch.as_tensor(slots, device=self.device)
+        self.hidden = tuple(t.index_fill(0, index, 0.0) for t in self.hidden)
+        self.prev_policy = self.prev_policy.index_fill(0, index, 0.0)
+        self.reward_sum[slots] = 0.0
+        self._starts[slots] = True
+
+    def act(self, obs: dict[str, np.ndarray], slots: np.ndarray, env: BatchedNavEnv) -> np.ndarray:
+        n, device = env.batch_size, self.device
+        self._obs = to_tensors(obs, device)
+        self._active_before = ~env.done
+        with self.model.memoizing_in_view(self._memo):
+            if self._actor is not None:
+                self._out = self._actor.forward(self._obs, self.hidden, self.prev_policy)
+            else:
+                with torch.no_grad():
+                    self._out = self.model(self._obs, self.hidden, self.prev_policy)
+        noise = torch.as_tensor(self._rng.random(n), dtype=torch.float32, device=device)
+        self._action = sample_actions(self._out.logits.detach(), noise)
+        self._expert = env.expert_actions() if self.expert else np.full(n, -1)
+        return self._action.cpu().numpy()
+
+    def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
+        n, device, out = env.batch_size, self.device, self._out
+        logits = out.logits.detach()
         # Whole episodes follow the references (R = 0 at the step limit): a truncation is an end there.
         cut_is_end = np.bool_(self.whole_episodes)
-        for _ in range(steps):
-            starts = self.needs_episode.copy()
-            if starts.any():
-                self._start_episodes(np.flatnonzero(starts), rng)
-            active_before = ~env.done
-            obs = to_tensors(env.observe(self.obs_keys), device)
-            with model.memoizing_in_view(memo):
-                out = actor.forward(obs, self.hidden, self.prev_policy) if actor else self._forward(obs)
-            logits = out.logits.detach()
-            noise = torch.as_tensor(rng.random(n), dtype=torch.float32, device=device)
-            action = sample_actions(logits, noise)
-            expert = env.expert_actions() if self.expert else np.full(n, -1)
-            step = env.step(action.cpu().numpy())
-            bootstrap = torch.zeros(n, device=device)
-            # The inner loop's test-time steps differentiate through the recurrence back to the start
-            # of their chunk (it cuts the graph there itself), as the replay and the evaluator do.
-            hidden = out.hidden if actor is not None else tuple(t.detach() for t in out.hidden)
-            policy = torch.softmax(logits, dim=-1)
-            if actor is not None:
-                actor.observe(out, torch.as_tensor(~env.done, device=device))
-            elif step.truncated.any():
-                bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(
-                    step.truncated, hidden, policy, memo
-                )
-            self.reward_sum += step.reward
-            for slot in np.flatnonzero(step.terminated | step.truncated):
-                length = int(env.steps[slot])
-                success = bool(step.success[slot])
-                finished.append(
-                    (
-                        success,
-                        spl(success, length, int(env.optimal_length[slot])),
-                        length,
-                        self.reward_sum[slot],
-                    )
-                )
-            for key, value in (
-                ("obs", obs),
-                ("prev_policy", self.prev_policy),
-                ("starts", torch.as_tensor(starts, device=device)),
-                ("actions", action),
-                ("log_prob", F.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)),
-                ("values", out.value.detach().reshape(n)),
-                ("rewards", torch.as_tensor(step.reward, device=device)),
-                (
-                    "terminated",
-                    torch.as_tensor(step.terminated | (step.truncated & cut_is_end), device=device),
-                ),
-                ("truncated", torch.as_tensor(step.truncated & ~cut_is_end, device=device)),
-                ("bootstrap", bootstrap),
-                ("mask", torch.as_tensor(active_before, dtype=torch.float32, device=device)),
-                ("expert", torch.as_tensor(expert, device=device)),
-            ):
-                record[key].append(value)
-            self.hidden, self.prev_policy = hidden, policy
-            if self.whole_episodes:
-                if env.done.all():
-                    break
-            else:
-                self.needs_episode |= step.terminated | step.truncated
-        if self.whole_episodes:
-            return torch.zeros(n, device=device)
-        obs = to_tensors(env.observe(self.obs_keys), device)
-        with torch.no_grad(), model.memoizing_in_view(memo):
-            return model(obs, self.hidden, self.prev_policy).value.reshape(n)
+        bootstrap = torch.zeros(n, device=device)
+        # The inner loop's test-time steps differentiate through the recurrence back to the start
+        # of their chunk (it cuts the graph there itself), as the replay and the evaluator do.
+        hidden = out.hidden if self._actor is not None else tuple(t.detach() for t in out.hidden)
+        policy = torch.softmax(logits, dim=-1)
+        if self._actor is not None:
+            self._actor.observe(out, torch.as_tensor(~env.done, device=device))
+        elif step.truncated.any():
+            bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(
+                step.truncated, hidden, policy
+            )
+        self.reward_sum += step.reward
+        for slot in np.flatnonzero(step.terminated | step.truncated):
+            length, success = int(env.steps[slot]), bool(step.success[slot])
+            optimal = int(env.optimal_length[slot])
+            self._finished.append((success, spl(success, length, optimal), length, self.reward_sum[slot]))
+        action = self._action
+        for key, value in (
+            ("obs", self._obs),
+            ("prev_policy", self.prev_policy),
+            ("starts", torch.as_tensor(self._starts, device=device)),
+            ("actions", action),
+            ("log_prob", F.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)),
+            ("values", out.value.detach().reshape(n)),
+            ("rewards", torch.as_tensor(step.reward, device=device)),
+            ("terminated", torch.as_tensor(step.terminated | (step.truncated & cut_is_end), device=device)),
+            ("truncated", torch.as_tensor(step.truncated & ~cut_is_end, device=device)),
+            ("bootstrap", bootstrap),
+            ("mask", torch.as_tensor(self._active_before, dtype=torch.float32, device=device)),
+            ("expert", torch.as_tensor(self._expert, device=device)),
+        ):
+            self._record[key].append(value)
+        self._starts = np.zeros(n, dtype=bool)
+        self.hidden, self.prev_policy = hidden, policy
 
-    def _forward(self, obs: dict[str, Tensor]) -> ModelOutput:
-        with torch.no_grad():
-            return self.model(obs, self.hidden, self.prev_policy)
-
-    def _values_after(
-        self, slots: np.ndarray, hidden: tuple[Tensor, Tensor], policy: Tensor, memo: InViewMemo
-    ) -> Tensor:
+    def _values_after(self, slots: np.ndarray, hidden: tuple[Tensor, Tensor], policy: Tensor) -> Tensor:
         """V of the states the truncated episodes in ``slots`` were cut in."""
         index = torch.as_tensor(np.flatnonzero(slots), device=self.device)
-        obs = to_tensors(self.env.observe(self.obs_keys), self.device)
+        obs = to_tensors(self.env.observe(self.observation_keys), self.device)
         obs = {k: v.index_select(0, index) for k, v in obs.items()}
         rows = tuple(t.index_select(0, index) for t in hidden)
-        with torch.no_grad(), self.model.memoizing_in_view(memo):
+        with torch.no_grad(), self.model.memoizing_in_view(self._memo):
             return self.model(obs, rows, policy.index_select(0, index)).value.reshape(-1)
 
 
