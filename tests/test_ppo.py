@@ -196,6 +196,7 @@ def test_ppo_run_resumes_exactly(tmp_path: Path, model: str) -> None:
         ("ppo.lr=nan", "ppo.lr"),
         ("ppo.lam=1.5", "ppo.lam"),
         ("mode=async", "batched mode"),
+        ("precision=bf16", "ppo trains in float32"),
     ],
 )
 def test_impossible_ppo_settings_are_clear_errors(override: str, message: str) -> None:

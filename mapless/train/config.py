@@ -344,6 +344,11 @@ class TrainConfig:
             "algo",
             "ppo runs in batched mode (the Hogwild async mode is the references' A3C)",
         )
+        _require(
+            self.algo == "a3c" or self.precision == "fp32",
+            "precision",
+            "bf16 is implemented for the A3C trainers only; ppo trains in float32",
+        )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(
