@@ -11,7 +11,7 @@ for adaptive models) and then, model by model in turns (this machine's speed dri
   from the profiler's labels.
 
     python bench/frame_cost.py [--models a3c,mjolnir_o,cvmeta,mlp] [--threads 1,2] [--repeats 3]
-                               [--set KEY=VALUE ...]
+                               [--set KEY=VALUE ...] [--profile]
 """
 
 from __future__ import annotations
@@ -85,12 +85,34 @@ def forward_split(trainer, segment) -> dict[str, float]:
     return totals
 
 
+def replay_profile(trainer, segment, rows: int = 12) -> str:
+    """The operators of one minibatch's replay (forward + backward) by self time, with their shapes:
+    where an adaptive model's update goes, which the labelled split cannot show."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from mapless.train.ppo_loss import gae
+
+    ppo = trainer.config.ppo
+    adv, ret = gae(segment.rewards, segment.values, segment.next_value, segment.terminated,
+                   segment.truncated, segment.bootstrap, ppo.gamma, ppo.lam)  # fmt: skip
+    columns = torch.arange(segment.mask.shape[1] // ppo.minibatches)
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        trainer._minibatch_step(segment, columns, adv, ret)
+    trainer.optimizer.zero_grad(set_to_none=True)
+    by_name = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
+    by_shape = prof.key_averages(group_by_input_shape=True).table(
+        sort_by="self_cpu_time_total", row_limit=rows, max_shapes_column_width=80
+    )
+    return f"{by_name}\n{by_shape}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", default="a3c,mjolnir_o,cvmeta,mlp")
     parser.add_argument("--threads", default="1,2")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--profile", action="store_true", help="also print each model's replay operators")
     args = parser.parse_args()
     models = args.models.split(",")
     for threads in [int(t) for t in args.threads.split(",")]:
@@ -125,6 +147,10 @@ def main() -> None:
             )
             ratio = f"{reference / ppo:.1f}x dearer" if reference else ""
             print(f"| {m} | {a:.0f} | {u:.0f} | {ppo:.0f} | {ratio} | {parts} |")
+        if args.profile:
+            for m in models:
+                print(f"\n{m}: one replay, operators by self time ({threads} thread(s))")
+                print(replay_profile(trainers[m], segments[m]))
 
 
 if __name__ == "__main__":
