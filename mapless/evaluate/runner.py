@@ -153,7 +153,7 @@ class EvalSettings:
     category_set: str = "mjolnir101"
 
 
-class _Recorder:
+class _EvaluationRecorder:
     """The :class:`~mapless.agent.episode_loop.LoopAgent` of :func:`run_episodes`: feeds the set's
     episodes in order, samples ``agent``'s actions from each episode's own uniforms and records every
     finished episode as an :class:`EpisodeResult`."""
@@ -258,7 +258,7 @@ def run_episodes(
         max_steps=settings.max_steps,
     )  # fmt: skip
     horizon = settings.max_steps or max(max_steps_for(library[s].room_type, "eval") for s in scenes)
-    recorder = _Recorder(agent, episodes, indices, settings, batch, horizon)
+    recorder = _EvaluationRecorder(agent, episodes, indices, settings, batch, horizon)
     EpisodeLoop(env, recorder, recorder.feed, start_every=agent.start_every).run()
     return sorted(recorder.results, key=lambda r: r.index)
 
