@@ -181,6 +181,7 @@ class _EvaluationRecorder:
         self.start_pose = np.zeros(batch, dtype=np.int64)
         self.offsets = np.zeros(batch, dtype=np.int64)
         self.results: list[EpisodeResult] = []
+        self.t = np.zeros(batch, dtype=np.int64)  # each slot's step index when it last acted
 
     def feed(self, free: np.ndarray) -> list[Episode]:
         items = [self.queue.pop() for _ in free[: len(self.queue)]]

@@ -20,6 +20,7 @@ reproducible from its seed and its checkpoint.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -82,6 +83,16 @@ def _finished_rows(rows: list[tuple[bool, float, int, float]]) -> dict[str, np.n
     return {key: array[:, i] for i, key in enumerate(("success", "spl", "length", "reward"))}
 
 
+class _Acted(NamedTuple):
+    """What :meth:`SegmentCollector.act` decided, for :meth:`SegmentCollector.after_step` to record."""
+
+    obs: dict[str, Tensor]
+    active_before: np.ndarray  # [N] the slot's episode was running before the step
+    output: ModelOutput
+    action: Tensor
+    expert: np.ndarray
+
+
 class SegmentCollector:
     """Steps ``env`` (``N`` slots) with a model, refilling finished slots from ``sampler``.
 
@@ -117,6 +128,7 @@ class SegmentCollector:
         self._memo: InViewMemo | None = None
         self._record: dict[str, list] = {}
         self._finished: list[tuple[bool, float, int, float]] = []
+        self._acted: _Acted | None = None  # the current step, between act() and after_step()
 
     # -- resumable state ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -200,21 +212,22 @@ class SegmentCollector:
 
     def act(self, obs: dict[str, np.ndarray], slots: np.ndarray, env: BatchedNavEnv) -> np.ndarray:
         n, device = env.batch_size, self.device
-        self._obs = to_tensors(obs, device)
-        self._active_before = ~env.done
+        tensors = to_tensors(obs, device)
         with self.model.memoizing_in_view(self._memo):
             if self._actor is not None:
-                self._out = self._actor.forward(self._obs, self.hidden, self.prev_policy)
+                out = self._actor.forward(tensors, self.hidden, self.prev_policy)
             else:
                 with torch.no_grad():
-                    self._out = self.model(self._obs, self.hidden, self.prev_policy)
+                    out = self.model(tensors, self.hidden, self.prev_policy)
         noise = torch.as_tensor(self._rng.random(n), dtype=torch.float32, device=device)
-        self._action = sample_actions(self._out.logits.detach(), noise)
-        self._expert = env.expert_actions() if self.expert else np.full(n, -1)
-        return self._action.cpu().numpy()
+        action = sample_actions(out.logits.detach(), noise)
+        expert = env.expert_actions() if self.expert else np.full(n, -1)
+        self._acted = _Acted(tensors, ~env.done, out, action, expert)
+        return action.cpu().numpy()
 
     def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
-        n, device, out = env.batch_size, self.device, self._out
+        n, device, acted = env.batch_size, self.device, self._acted
+        out = acted.output
         logits = out.logits.detach()
         # Whole episodes follow the references (R = 0 at the step limit): a truncation is an end there.
         cut_is_end = np.bool_(self.whole_episodes)
@@ -234,9 +247,9 @@ class SegmentCollector:
             length, success = int(env.steps[slot]), bool(step.success[slot])
             optimal = int(env.optimal_length[slot])
             self._finished.append((success, spl(success, length, optimal), length, self.reward_sum[slot]))
-        action = self._action
+        action = acted.action
         for key, value in (
-            ("obs", self._obs),
+            ("obs", acted.obs),
             ("prev_policy", self.prev_policy),
             ("starts", torch.as_tensor(self._starts, device=device)),
             ("actions", action),
@@ -246,8 +259,8 @@ class SegmentCollector:
             ("terminated", torch.as_tensor(step.terminated | (step.truncated & cut_is_end), device=device)),
             ("truncated", torch.as_tensor(step.truncated & ~cut_is_end, device=device)),
             ("bootstrap", bootstrap),
-            ("mask", torch.as_tensor(self._active_before, dtype=torch.float32, device=device)),
-            ("expert", torch.as_tensor(self._expert, device=device)),
+            ("mask", torch.as_tensor(acted.active_before, dtype=torch.float32, device=device)),
+            ("expert", torch.as_tensor(acted.expert, device=device)),
         ):
             self._record[key].append(value)
         self._starts = np.zeros(n, dtype=bool)
