@@ -22,7 +22,7 @@ from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
 
 EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45", "layout_shift")
-BUDGETS = ("smoke", "small", "full")
+BUDGETS = ("smoke", "small", "medium", "full")
 ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
 
 
@@ -134,10 +134,23 @@ def read_experiment(path: Path, overrides: list[str] | None = None) -> Experimen
     (:func:`load_experiment` does)."""
     data = read_mapping(path)
     if "budget" in data:
-        if data["budget"] not in BUDGETS:
-            raise UnknownNameError("budget", data["budget"], BUDGETS)
-        data = {**read_mapping(budget_path(data["budget"])), **data}
+        data = {**read_budget(data["budget"]), **data}
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
+
+
+def read_budget(budget: str) -> dict:
+    """The mapping of ``experiments/budgets/<budget>.yaml``. A budget file that says ``extends: B``
+    is read over B's mapping key by key, nested mappings included, so a longer budget states only
+    what it changes (``medium`` is ``small`` for longer)."""
+    if budget not in BUDGETS:
+        raise UnknownNameError("budget", budget, BUDGETS)
+    data = read_mapping(budget_path(budget))
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if base == budget:
+        raise ConfigError(f"{budget_path(budget)}: a budget cannot extend itself")
+    return _merge(read_budget(base), data)
 
 
 def load_experiment(
