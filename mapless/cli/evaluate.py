@@ -11,7 +11,7 @@ from pathlib import Path
 from mapless.cli.common import positive_int
 from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
-from mapless.experiments.config import EXPERIMENTS
+from mapless.experiments.config import BUDGETS, EXPERIMENTS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -70,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "reports/EXPERIMENT/.",
     )
     rep.add_argument("experiment", choices=EXPERIMENTS)
-    rep.add_argument("--budget", choices=("smoke", "small", "full"), default="smoke")
+    rep.add_argument("--budget", choices=BUDGETS, default="smoke")
     rep.add_argument("--seeds", type=positive_int, help="training seeds per run (overrides the config)")
     rep.add_argument(
         "--config", type=Path, help="experiment YAML (default experiments/EXPERIMENT_BUDGET.yaml)"
