@@ -2,7 +2,7 @@
 exactly the configuration the one-file-per-experiment-and-budget layout gave (captured in
 tests/data/experiment_configs_resolved.json before the split; since then only the small budget's
 imitation warm start and every baseline's target_context, the layout-shift experiment and the
-fields it added, and Table 2's move to the PPO recipe), and the composition rule itself."""
+fields it added, Table 2's move to the PPO recipe and the medium budget), and the composition rules.
 
 from __future__ import annotations
 
@@ -13,7 +13,15 @@ import pytest
 
 from mapless.config import ConfigError, to_dict
 from mapless.errors import UnknownNameError
-from mapless.experiments import BUDGETS, EXPERIMENTS, config_path, load_experiment, read_experiment
+from mapless.experiments import (
+    BUDGETS,
+    EXPERIMENTS,
+    config_path,
+    load_experiment,
+    read_experiment,
+    train_config,
+)
+from mapless.experiments.config import read_budget
 
 RESOLVED = json.loads((Path(__file__).parent / "data" / "experiment_configs_resolved.json").read_text())
 
@@ -60,3 +68,24 @@ def test_a_file_naming_no_budget_stands_alone_and_an_unknown_budget_is_refused(t
 def test_a_misspelt_per_model_name_is_refused_on_load() -> None:
     with pytest.raises(ConfigError, match="cvmta"):
         load_experiment("table1", "smoke", overrides=["per_model.cvmta.episodes=8"])
+
+
+def test_the_medium_budget_is_small_for_longer_nested_keys_merged() -> None:
+    small, medium = load_experiment("table1", "small"), load_experiment("table1", "medium")
+    assert medium.runs_dir != small.runs_dir and "savn" in medium.models
+    cvmeta_small, cvmeta_medium = train_config(small, "cvmeta", 1), train_config(medium, "cvmeta", 1)
+    assert (cvmeta_small.max_seconds, cvmeta_medium.max_seconds) == (900, 3600)
+    # per_model.cvmeta of medium sets frames and checkpoints only: small's model widths and PPO
+    # minibatches survive the merge.
+    assert cvmeta_medium.model == cvmeta_small.model and cvmeta_medium.model.gcn_hidden == 64
+    assert cvmeta_medium.ppo == cvmeta_small.ppo and cvmeta_medium.meta.first_order
+    assert cvmeta_medium.frames > cvmeta_small.frames
+
+
+def test_a_budget_extending_itself_or_an_unknown_budget_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "small.yaml").write_text("extends: small\nseeds: 2\n")
+    with pytest.raises(ConfigError, match="cannot extend itself"):
+        read_budget("small", tmp_path)
+    (tmp_path / "medium.yaml").write_text("extends: large\n")
+    with pytest.raises(UnknownNameError, match="large"):
+        read_budget("medium", tmp_path)

@@ -138,19 +138,20 @@ def read_experiment(path: Path, overrides: list[str] | None = None) -> Experimen
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
 
 
-def read_budget(budget: str) -> dict:
+def read_budget(budget: str, directory: Path | None = None) -> dict:
     """The mapping of ``experiments/budgets/<budget>.yaml``. A budget file that says ``extends: B``
     is read over B's mapping key by key, nested mappings included, so a longer budget states only
-    what it changes (``medium`` is ``small`` for longer)."""
+    what it changes (``medium`` is ``small`` for longer). ``directory``: the budgets folder (tests)."""
     if budget not in BUDGETS:
         raise UnknownNameError("budget", budget, BUDGETS)
-    data = read_mapping(budget_path(budget))
+    path = (directory or budget_path(budget).parent) / f"{budget}.yaml"
+    data = read_mapping(path)
     base = data.pop("extends", None)
     if base is None:
         return data
     if base == budget:
-        raise ConfigError(f"{budget_path(budget)}: a budget cannot extend itself")
-    return _merge(read_budget(base), data)
+        raise ConfigError(f"{path}: a budget cannot extend itself")
+    return _merge(read_budget(base, directory), data)
 
 
 def load_experiment(
