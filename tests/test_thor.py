@@ -13,15 +13,16 @@ from thor_fake import OBJECTS, REACHABLE, FakeController
 from mapless.errors import MaplessError
 from mapless.offline import load_offline_scene
 from mapless.offline.format import parse_pose_key
+from mapless.sim.config import SimConfig
 from mapless.sim.scene_data import MOVE_AHEAD, N_MOVEMENT_ACTIONS
 from mapless.thor import LiveThorScene, ThorConfig, make_controller, scrape, scrape_scene
 
-CONFIG = ThorConfig(visibility_distance=1.0)
+CONFIG = ThorConfig(SimConfig(visibility_distance=1.0))
 
 
 @pytest.fixture(scope="module")
 def scraped():
-    controller = FakeController(visibilityDistance=CONFIG.visibility_distance)
+    controller = FakeController(visibilityDistance=CONFIG.sim.visibility_distance)
     return controller, scrape_scene(controller, "FloorPlan5", CONFIG)
 
 
@@ -34,7 +35,7 @@ def _expected_successor(key: str, action: int) -> tuple[float, float, int, int]:
     if action in (1, 2):
         return x, z, (yaw + (45 if action == 2 else -45)) % 360, horizon
     new = horizon + (30 if action == 4 else -30)
-    return (x, z, yaw, new) if new in CONFIG.horizons else (x, z, yaw, horizon)
+    return (x, z, yaw, new) if new in CONFIG.sim.horizons else (x, z, yaw, horizon)
 
 
 def test_scrape_covers_every_pose_with_thor_semantics(scraped):
@@ -64,7 +65,7 @@ def test_scrape_covers_every_pose_with_thor_semantics(scraped):
 @pytest.mark.parametrize("fmt", ["savn", "mjolnir"])
 def test_scrape_writes_an_offline_folder(tmp_path, scraped, fmt):
     _, reference = scraped
-    controller = FakeController(visibilityDistance=CONFIG.visibility_distance)
+    controller = FakeController(visibilityDistance=CONFIG.sim.visibility_distance)
     folder = scrape(controller, "FloorPlan5", tmp_path, fmt, CONFIG, images=True)
     assert folder.name == ("FloorPlan5_physics" if fmt == "savn" else "FloorPlan5")
     read = load_offline_scene(folder)
@@ -91,7 +92,7 @@ def test_feature_extractor_hook(tmp_path):
 
 def test_live_scene_follows_the_scraped_graph(scraped):
     _, sd = scraped
-    live = LiveThorScene(FakeController(visibilityDistance=CONFIG.visibility_distance), CONFIG)
+    live = LiveThorScene(FakeController(visibilityDistance=CONFIG.sim.visibility_distance), CONFIG)
     obs = live.reset("FloorPlan5", start="0.00|0.25|0|0")
     p = sd.pose_index["0.00|0.25|0|0"]
     rng = np.random.default_rng(1)
@@ -118,17 +119,19 @@ def test_live_scene_errors():
 
 
 def test_controller_settings_and_missing_ai2thor():
-    kwargs = ThorConfig(visibility_distance=1.5, extra={"commit_id": "abc"}).controller_kwargs()
+    kwargs = ThorConfig(SimConfig(visibility_distance=1.5), extra={"commit_id": "abc"}).controller_kwargs()
     assert kwargs["gridSize"] == 0.25 and kwargs["rotateStepDegrees"] == 45
     assert kwargs["renderInstanceSegmentation"] and kwargs["width"] == kwargs["height"] == 300
+    assert kwargs["fieldOfView"] == 90.0 and kwargs["renderDepthImage"]
     assert kwargs["visibilityDistance"] == 1.5 and kwargs["commit_id"] == "abc"
     try:
         import ai2thor  # noqa: F401
     except ImportError:
         with pytest.raises(MaplessError, match=r"mapless\[thor\]"):
             make_controller("FloorPlan1")
-    with pytest.raises(MaplessError, match="square"):
-        ThorConfig(width=400)
+    # Frames are square by construction (SimConfig.image_size); a step with no grid neighbour fails.
+    with pytest.raises(MaplessError, match="rotation_step"):
+        ThorConfig(SimConfig(rotation_step=30))
 
 
 def test_cli_scrape(tmp_path, monkeypatch, capsys):
@@ -141,7 +144,7 @@ def test_cli_scrape(tmp_path, monkeypatch, capsys):
 
     def fake_make_controller(scene, config):
         made.append(config)
-        return FakeController(scene, visibilityDistance=config.visibility_distance)
+        return FakeController(scene, visibilityDistance=config.sim.visibility_distance)
 
     monkeypatch.setattr(mapless.thor, "make_controller", fake_make_controller)
     parser = argparse.ArgumentParser()
@@ -157,12 +160,15 @@ def test_cli_scrape(tmp_path, monkeypatch, capsys):
             "mjolnir",
             "--visibility-distance",
             "1.5",
+            "--field-of-view",
+            "80",
             "--platform",
             "CloudRendering",
         ]
     )
     assert args.func(args) == 0
-    assert made[0].visibility_distance == 1.5 and made[0].platform == "CloudRendering"
+    assert made[0].sim.visibility_distance == 1.5 and made[0].sim.horizontal_fov == 80.0
+    assert made[0].platform == "CloudRendering"
     assert load_offline_scene(tmp_path / "FloorPlan301").room_type == "bedroom"
     assert "FloorPlan5: scraped" in capsys.readouterr().out
     args = parser.parse_args(["thor", "scrape", "FloorPlan5", "--out", str(tmp_path), "--horizons", "0,x"])

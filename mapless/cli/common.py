@@ -6,7 +6,11 @@ import argparse
 from pathlib import Path
 
 from mapless.config import load_config
+from mapless.scenes.categories import CATEGORY_SETS
 from mapless.sim.config import SimConfig
+
+#: Help of a SCENES argument (read by :func:`mapless.scenes.catalogue.resolve_scenes`).
+SCENES_HELP = "split name, split:room, or FloorPlan names (comma-separated)"
 
 
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +29,15 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="cache root, the same as $MAPLESS_CACHE: scenes go in CACHE_DIR/scenes/ "
         "(default $MAPLESS_CACHE or ~/.cache/mapless)",
+    )
+
+
+def add_category_set_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--category-set",
+        default="mjolnir101",
+        choices=CATEGORY_SETS,
+        help="object categories of the context rows and feature maps (default: %(default)s)",
     )
 
 

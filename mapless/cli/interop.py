@@ -16,7 +16,7 @@ import argparse
 import time
 from pathlib import Path
 
-from mapless.cli.common import add_sim_arguments, sim_config_from
+from mapless.cli.common import SCENES_HELP, add_category_set_argument, add_sim_arguments, sim_config_from
 from mapless.errors import MaplessError
 from mapless.offline import offline_library
 from mapless.offline.format import FORMATS
@@ -24,7 +24,7 @@ from mapless.offline.format import FORMATS
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     export = subparsers.add_parser("export", help="write built-in scenes as SAVN/MJOLNIR offline folders")
-    export.add_argument("scenes", help="split name, split:room, or FloorPlan names (comma-separated)")
+    export.add_argument("scenes", help=SCENES_HELP)
     export.add_argument("--format", choices=FORMATS, default="savn")
     export.add_argument("--out", type=Path, required=True, help="offline data root (one folder per scene)")
     export.add_argument("--no-compression", action="store_true", help="write the feature HDF5 uncompressed")
@@ -34,13 +34,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     thor = subparsers.add_parser("thor", help="live AI2-THOR backend (needs the mapless[thor] extra)")
     thor_sub = thor.add_subparsers(dest="thor_command", required=True)
     scrape = thor_sub.add_parser("scrape", help="breadth-first search over poses into offline folders")
-    scrape.add_argument("scenes", help="split name, split:room, or FloorPlan names (comma-separated)")
+    scrape.add_argument("scenes", help=SCENES_HELP)
     scrape.add_argument("--out", type=Path, required=True)
     scrape.add_argument("--format", choices=FORMATS, default="savn")
     scrape.add_argument("--visibility-distance", type=float, default=1.0, help="m (default 1.0)")
     scrape.add_argument("--horizons", default="0,30", help="camera horizons, comma-separated (default 0,30)")
     scrape.add_argument("--field-of-view", type=float, default=90.0)
-    scrape.add_argument("--category-set", default="mjolnir101")
+    add_category_set_argument(scrape)
     scrape.add_argument("--platform", help="ai2thor platform, e.g. CloudRendering for headless Vulkan")
     scrape.add_argument("--commit-id", help="pin the AI2-THOR build")
     scrape.add_argument("--local-executable-path", help="use an already downloaded AI2-THOR build")
@@ -51,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = interop.add_subparsers(dest="interop_command", required=True)
     check = sub.add_parser("check", help="load offline scene folders and summarise them")
     check.add_argument("folders", nargs="+", type=Path, help="scene folders, or roots holding them")
-    check.add_argument("--category-set", default="mjolnir101")
+    add_category_set_argument(check)
     check.add_argument("--visible-file", default="visible_object_map.json")
     check.add_argument("--no-features", action="store_true", help="skip reading the feature HDF5")
     check.set_defaults(func=_check)
@@ -133,6 +133,7 @@ def _export(args: argparse.Namespace) -> int:
 
 def _scrape(args: argparse.Namespace) -> int:
     from mapless.scenes.catalogue import resolve_scenes
+    from mapless.sim.config import SimConfig
     from mapless.thor import ThorConfig, make_controller, scrape
 
     try:
@@ -144,14 +145,13 @@ def _scrape(args: argparse.Namespace) -> int:
         for k, v in (("commit_id", args.commit_id), ("local_executable_path", args.local_executable_path))
         if v
     }
-    config = ThorConfig(
+    sim = SimConfig(
         visibility_distance=args.visibility_distance,
         horizons=horizons,
-        field_of_view=args.field_of_view,
+        horizontal_fov=args.field_of_view,
         category_set=args.category_set,
-        platform=args.platform,
-        extra=extra,
     )
+    config = ThorConfig(sim, platform=args.platform, extra=extra)
     scenes = resolve_scenes(args.scenes)
     controller = make_controller(scenes[0], config)
     try:

@@ -4,19 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from mapless.scenes.categories import CATEGORY_SETS
+from mapless.cli.common import add_category_set_argument
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("models", help="registered navigation models")
     sub = parser.add_subparsers(dest="models_command", required=True)
     listing = sub.add_parser("list", help="model names with parameter counts")
-    listing.add_argument(
-        "--category-set",
-        default="mjolnir101",
-        choices=CATEGORY_SETS,
-        help="category set the models are built for (default: %(default)s)",
-    )
+    add_category_set_argument(listing)
     listing.add_argument(
         "--reference",
         action="store_true",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import add_sim_arguments, parse_pose, sim_config_from
+from mapless.cli.common import SCENES_HELP, add_sim_arguments, parse_pose, sim_config_from
 from mapless.errors import UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
 from mapless.scenes.categories import targets
@@ -21,12 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = parser.add_subparsers(dest="scenes_command", required=True)
 
     build = sub.add_parser("build", help="precompute and cache scenes (all 120 by default)")
-    build.add_argument(
-        "scenes",
-        nargs="?",
-        default="all",
-        help="split name, split:room, or FloorPlan names (comma-separated)",
-    )
+    build.add_argument("scenes", nargs="?", default="all", help=SCENES_HELP)
     build.add_argument("--workers", type=int, default=2)
     build.add_argument("--rebuild", action="store_true", help="ignore existing cache entries")
     add_sim_arguments(build)

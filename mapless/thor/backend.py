@@ -39,6 +39,7 @@ from mapless.offline.format import (
     parse_pose_key,
     scene_folder_name,
 )
+from mapless.sim.config import SimConfig
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS, SceneData, pose_key
 
 MAX_FEATURE_DEPTH = 10.0  # m, as in the geometric simulator's depth channel
@@ -48,41 +49,28 @@ FeatureExtractor = Callable[[np.ndarray], np.ndarray]
 
 @dataclass(frozen=True)
 class ThorConfig:
-    """Controller settings. Defaults follow the SAVN/MJOLNIR data and mapless' simulator."""
+    """Controller settings: the geometric simulator's ``sim`` settings (grid, rotation step,
+    horizons, visibility distance, square ``image_size`` frames, field of view, category set; the
+    defaults follow the SAVN/MJOLNIR data) plus what only a live AI2-THOR needs. The rest of
+    ``sim`` (eye height, ray resolution, obstacle margins...) concerns the geometric simulator only.
+    """
 
-    grid_size: float = 0.25
-    rotation_step: int = 45
-    horizons: tuple[int, ...] = (0, 30)
-    visibility_distance: float = 1.0
-    width: int = 300
-    height: int = 300
-    field_of_view: float = 90.0
-    category_set: str = "mjolnir101"
+    sim: SimConfig = field(default_factory=SimConfig)
     render_depth: bool = True
     #: ``"CloudRendering"`` for headless Vulkan rendering; None = ai2thor's default (needs X).
     platform: str | None = None
     #: Further ``Controller`` keyword arguments (``commit_id``, ``local_executable_path``...).
     extra: dict = field(default_factory=dict)
 
-    def __post_init__(self) -> None:
-        if self.width != self.height:
-            raise MaplessError(
-                f"thor frames must be square (the 7x7 map and boxes assume it), got "
-                f"{self.width}x{self.height}"
-            )
-        if 360 % self.rotation_step:
-            raise MaplessError(f"thor rotation_step must divide 360, got {self.rotation_step}")
-        object.__setattr__(self, "horizons", tuple(sorted(int(h) for h in self.horizons)))
-
     def controller_kwargs(self) -> dict[str, Any]:
         kwargs: dict[str, Any] = {
             "agentMode": "default",
-            "gridSize": self.grid_size,
-            "rotateStepDegrees": self.rotation_step,
-            "visibilityDistance": self.visibility_distance,
-            "width": self.width,
-            "height": self.height,
-            "fieldOfView": self.field_of_view,
+            "gridSize": self.sim.grid_size,
+            "rotateStepDegrees": self.sim.rotation_step,
+            "visibilityDistance": self.sim.visibility_distance,
+            "width": self.sim.image_size,
+            "height": self.sim.image_size,
+            "fieldOfView": self.sim.horizontal_fov,
             "renderInstanceSegmentation": True,
             "renderDepthImage": self.render_depth,
         }
@@ -261,7 +249,7 @@ class LiveThorScene:
     """A scene stepped live in AI2-THOR with the offline transition rule.
 
     Moves are teleports to the geometric guess of the action (diagonal MoveAhead by (+-g, +-g),
-    45 degree turns, horizon steps of 30 limited to ``config.horizons``), so a live episode follows
+    45 degree turns, horizon steps of 30 limited to ``config.sim.horizons``), so a live episode follows
     exactly the transitions of a scraped offline folder.
     """
 
@@ -275,7 +263,7 @@ class LiveThorScene:
     def reset(self, scene: str, start: str | None = None) -> dict[str, Any]:
         """Load ``scene`` and teleport to ``start`` (a pose key), or stay at the spawn pose."""
         self.event = self.controller.reset(scene=scene)
-        self.table = ObjectTable.from_event(self.event, self.config.category_set)
+        self.table = ObjectTable.from_event(self.event, self.config.sim.category_set)
         self.agent_y = float(self.event.metadata["agent"]["position"]["y"])
         if start is not None:
             event = teleport(self.controller, start, self.agent_y)
@@ -296,7 +284,7 @@ class LiveThorScene:
         if action != DONE:
             if not 0 <= action < N_MOVEMENT_ACTIONS:
                 raise MaplessError(f"unknown action {action}; valid: 0-5")
-            guess = _allowed_guess(self.pose, action, self.config)
+            guess = _allowed_guess(self.pose, action, self.config.sim)
             event = teleport(self.controller, guess, self.agent_y) if guess else None
             if event is not None:
                 self.event, moved = event, True
@@ -306,15 +294,15 @@ class LiveThorScene:
         return self.observation(), moved
 
     def observation(self) -> dict[str, Any]:
-        obs = observation_from_event(self.event, self.table, self.config.width)
+        obs = observation_from_event(self.event, self.table, self.config.sim.image_size)
         obs["pose"] = self.pose
         return obs
 
 
-def _allowed_guess(key: str, action: int, config: ThorConfig) -> str | None:
-    for guess in guess_next_keys(key, action, config.grid_size, config.rotation_step):
+def _allowed_guess(key: str, action: int, sim: SimConfig) -> str | None:
+    for guess in guess_next_keys(key, action, sim.grid_size, sim.rotation_step):
         _, _, yaw, horizon = parse_pose_key(guess)
-        if horizon in config.horizons and yaw % config.rotation_step == 0:
+        if horizon in sim.horizons and yaw % sim.rotation_step == 0:
             return guess
     return None
 
@@ -341,13 +329,14 @@ def scrape_scene(
     ResNet-18 returning ``[512, 7, 7]``); ``on_frame(key, frame)`` sees every RGB frame.
     """
     config = config or ThorConfig()
+    sim = config.sim
     event = controller.reset(scene=scene)
-    table = ObjectTable.from_event(event, config.category_set)
+    table = ObjectTable.from_event(event, sim.category_set)
     reachable = controller.step(action="GetReachablePositions").metadata.get("actionReturn") or []
     if not reachable:
         raise MaplessError(f"AI2-THOR returned no reachable positions for {scene}")
     agent_y = float(reachable[0].get("y", event.metadata["agent"]["position"]["y"]))
-    start_horizon = 0 if 0 in config.horizons else config.horizons[0]
+    start_horizon = 0 if 0 in sim.horizons else sim.horizons[0]
 
     keys: list[str] = []
     index: dict[str, int] = {}
@@ -394,7 +383,7 @@ def scrape_scene(
             if bar is not None:
                 bar.update()
             for action in range(N_MOVEMENT_ACTIONS):
-                guess = _allowed_guess(key, action, config)
+                guess = _allowed_guess(key, action, sim)
                 target = visit(guess) if guess else None
                 if target is not None:
                     edges.append((index[key], action, target))
@@ -408,7 +397,7 @@ def scrape_scene(
     poses = np.array([parse_pose_key(k) for k in keys], dtype=np.float64).reshape(-1, 4)
     view_ptr = np.concatenate([[0], np.cumsum([len(r[0]) for r in records])]).astype(np.int64)
     context = np.stack(
-        [context_from_boxes(table.rows[r[0]], r[1], table.n_categories, config.width) for r in records]
+        [context_from_boxes(table.rows[r[0]], r[1], table.n_categories, sim.image_size) for r in records]
     )
 
     def flat(j: int, dtype: Any, width: int | None = None) -> np.ndarray:
@@ -439,10 +428,10 @@ def scrape_scene(
         feature_scale=1.0 if feature_extractor is not None else FEATURE_SCALE,
         meta={
             "backend": "thor",
-            "category_set": config.category_set,
+            "category_set": sim.category_set,
             "feature_kind": "resnet18" if feature_extractor is not None else "semantic",
             "agent_y": agent_y,
-            "visibility_distance": config.visibility_distance,
+            "visibility_distance": sim.visibility_distance,
         },
     )
 
