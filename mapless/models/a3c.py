@@ -22,8 +22,6 @@ from mapless.models.base import (
     RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
-    glorot_init,
-    init_heads_and_lstm,
     pointwise_conv,
     target_context_input,
     tile,
@@ -68,14 +66,10 @@ class SavnEmbeddingMixin:
 
     def _finish_init(self, lstm_input: int) -> None:
         """LSTM and heads, SAVN's init, then the reference's dead ``action_predict_linear``."""
-        self.lstm = nn.LSTMCell(lstm_input, self.hidden_size)
-        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(self.hidden_size, 1)
-        glorot_init(self)
+        self._build_recurrent_core(lstm_input)
         if hasattr(self, "conv1"):
             with torch.no_grad():
                 self.conv1.weight.mul_(math.sqrt(2.0))  # SAVN scales conv1 by the ReLU gain
-        init_heads_and_lstm(self)
         if self.config.reference_extras:
             # Defined by every reference model (2 x LSTM input -> 6) and never called.
             self.action_predict_linear = nn.Linear(2 * lstm_input, NUM_ACTIONS)

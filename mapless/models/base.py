@@ -225,6 +225,18 @@ class RecurrentNavModel(NavModel, abc.ABC):
 
     parameter_roles = RECURRENT_CORE_ROLES
 
+    def _build_recurrent_core(self, lstm_input: int, glorot: bool = True) -> None:
+        """The LSTM and the actor/critic heads on h, with SAVN's init: ``glorot`` re-initialises every
+        Conv/Linear built so far (encoders included, :func:`glorot_init`), then the heads and LSTM
+        biases get theirs (:func:`init_heads_and_lstm`). Call it after the encoders, before any
+        module that keeps PyTorch's default init (the learned loss)."""
+        self.lstm = nn.LSTMCell(lstm_input, self.hidden_size)
+        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
+        self.critic_linear = nn.Linear(self.hidden_size, 1)
+        if glorot:
+            glorot_init(self)
+        init_heads_and_lstm(self)
+
     def core_parameter_names(self) -> list[str]:
         """The parameters of the recurrent core after :meth:`encode` (the LSTM and the actor), which
         the inner loop runs batched rather than per episode."""

@@ -34,8 +34,6 @@ from mapless.models.base import (
     RecurrentNavModel,
     context_vector,
     gcn_layer,
-    glorot_init,
-    init_heads_and_lstm,
     normalized_adjacency_parameter,
     pointwise_conv,
     pointwise_conv_of_parts,
@@ -82,11 +80,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
         self.dropout = Dropout(config.dropout)
-        self.lstm = nn.LSTMCell(config.fusion_channels * nodes, self.hidden_size)
-        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(self.hidden_size, 1)
-        glorot_init(self)
-        init_heads_and_lstm(self)
+        self._build_recurrent_core(config.fusion_channels * nodes)
         self._build_learned_loss(with_key_linear=False)
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:

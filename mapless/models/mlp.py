@@ -19,7 +19,6 @@ from mapless.models.base import (
     RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
-    init_heads_and_lstm,
     target_row,
     target_similarity,
 )
@@ -38,10 +37,7 @@ class MlpModel(RecurrentNavModel):
         self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
         self.layer1 = nn.Linear(c * 4 + c + 4 + NUM_ACTIONS, WIDTH)
         self.layer2 = nn.Linear(WIDTH, WIDTH)
-        self.lstm = nn.LSTMCell(WIDTH, self.hidden_size)
-        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(self.hidden_size, 1)
-        init_heads_and_lstm(self)
+        self._build_recurrent_core(WIDTH, glorot=False)
 
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor

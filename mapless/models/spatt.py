@@ -22,8 +22,6 @@ from mapless.models.base import (
     RECURRENT_CORE_ROLES,
     ModelConfig,
     RecurrentNavModel,
-    glorot_init,
-    init_heads_and_lstm,
     pointwise_conv,
     target_context_input,
     unit,
@@ -57,11 +55,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_memory = nn.Conv1d(hidden, EMBED, 1)
         self.memory_alpha = nn.Conv1d(hidden, 3, 1)
         self.dropout = Dropout(config.dropout)
-        self.lstm = nn.LSTMCell(EMBED * GRID * GRID, hidden)
-        self.actor_linear = nn.Linear(hidden, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(hidden, 1)
-        glorot_init(self)
-        init_heads_and_lstm(self)
+        self._build_recurrent_core(EMBED * GRID * GRID)
         self._build_learned_loss(with_key_linear=False)  # EOTP has no ll_key / ll_linear
 
     @staticmethod
