@@ -3,6 +3,11 @@ worker counts, seeded sampling, test-time adaptation of meta models, scene parti
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from collections import Counter
 
 import numpy as np
@@ -202,3 +207,40 @@ def test_bf16_autocast_policy_matches_float32_up_to_rounding():
     assert fast.dtype == exact.dtype and fast_agent.hidden[0].dtype == torch.float32
     np.testing.assert_allclose(fast, exact, atol=2e-3)
     np.testing.assert_allclose(fast.sum(axis=1), 1.0, atol=1e-6)
+
+
+_POOL_THEN_DIE = """
+import multiprocessing, os
+from concurrent.futures import ProcessPoolExecutor
+from mapless.evaluate.runner import exit_with_parent
+if __name__ == "__main__":
+    watch = {watch}
+    init = dict(initializer=exit_with_parent, initargs=(os.getpid(), 0.1)) if watch else {{}}
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"), **init)
+    print(pool.submit(os.getpid).result(), flush=True)
+    os._exit(0)  # no shutdown, as a parent killed by a signal leaves its pool
+"""
+
+
+@pytest.mark.parametrize("watch", [True, False])
+def test_evaluation_workers_exit_when_their_parent_dies(watch: bool) -> None:
+    parent = subprocess.Popen([sys.executable, "-c", _POOL_THEN_DIE.format(watch=watch)],
+                              stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              text=True)  # fmt: skip
+    worker = int(parent.stdout.readline())
+    parent.wait(timeout=60)
+    deadline = time.monotonic() + 20
+    while _running(worker) and time.monotonic() < deadline and watch:
+        time.sleep(0.1)
+    orphaned = _running(worker)
+    if orphaned:
+        os.kill(worker, signal.SIGKILL)
+    # Without the initializer the worker blocks on its call queue forever: the test can fail.
+    assert orphaned is not watch
+
+
+def _running(pid: int) -> bool:
+    state = subprocess.run(
+        ["ps", "-o", "stat=", "-p", str(pid)], capture_output=True, text=True
+    ).stdout.strip()
+    return bool(state) and not state.startswith("Z")

@@ -22,6 +22,8 @@ How it runs:
 from __future__ import annotations
 
 import multiprocessing
+import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -325,6 +327,18 @@ def _worker(
     return [r.to_dict() for r in results], _rss_mb(), time.perf_counter() - start
 
 
+def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
+    """Worker initializer: exit when process ``parent`` is gone. A pool's workers otherwise outlive
+    a parent killed without a clean shutdown (SIGTERM, SIGKILL), each holding a scene library."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
 def evaluate(
     agent: AgentSpec,
     episodes: Sequence[Episode],
@@ -348,7 +362,9 @@ def evaluate(
         out = [_worker((*jobs[0][:5], 0))]
     else:
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        with ProcessPoolExecutor(
+            max_workers=workers, mp_context=context, initializer=exit_with_parent, initargs=(os.getpid(),)
+        ) as pool:
             out = list(pool.map(_worker, jobs))
     seconds = time.perf_counter() - start
     results = sorted((EpisodeResult.from_dict(d) for part, _, _ in out for d in part), key=lambda r: r.index)
