@@ -16,7 +16,6 @@ from mapless.models.base import (
     NUM_ACTIONS,
     RECURRENT_CORE_ROLES,
     RecurrentNavModel,
-    init_heads_and_lstm,
     target_row,
 )
 from mapless.models.roles import ParameterRoles
@@ -32,10 +31,7 @@ class TargetRowModel(RecurrentNavModel):
     def __init__(self, config, knowledge=None):
         super().__init__(config, knowledge)
         self.embed = nn.Linear(4 + NUM_ACTIONS, 32)
-        self.lstm = nn.LSTMCell(32, self.hidden_size)
-        self.actor_linear = nn.Linear(self.hidden_size, NUM_ACTIONS)
-        self.critic_linear = nn.Linear(self.hidden_size, 1)
-        init_heads_and_lstm(self)
+        self.build_recurrent_core(32, glorot=False)
 
     def encode(self, obs: dict[str, Tensor], hidden, prev_policy: Tensor):
         row = target_row(obs["context"], obs["target_index"])

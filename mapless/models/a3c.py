@@ -66,7 +66,7 @@ class SavnEmbeddingMixin:
 
     def _finish_init(self, lstm_input: int) -> None:
         """LSTM and heads, SAVN's init, then the reference's dead ``action_predict_linear``."""
-        self._build_recurrent_core(lstm_input)
+        self.build_recurrent_core(lstm_input)
         if hasattr(self, "conv1"):
             with torch.no_grad():
                 self.conv1.weight.mul_(math.sqrt(2.0))  # SAVN scales conv1 by the ReLU gain

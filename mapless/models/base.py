@@ -225,7 +225,7 @@ class RecurrentNavModel(NavModel, abc.ABC):
 
     parameter_roles = RECURRENT_CORE_ROLES
 
-    def _build_recurrent_core(self, lstm_input: int, glorot: bool = True) -> None:
+    def build_recurrent_core(self, lstm_input: int, glorot: bool = True) -> None:
         """The LSTM and the actor/critic heads on h, with SAVN's init: ``glorot`` re-initialises every
         Conv/Linear built so far (encoders included, :func:`glorot_init`), then the heads and LSTM
         biases get theirs (:func:`init_heads_and_lstm`). Call it after the encoders, before any

@@ -80,7 +80,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
         self.dropout = Dropout(config.dropout)
-        self._build_recurrent_core(config.fusion_channels * nodes)
+        self.build_recurrent_core(config.fusion_channels * nodes)
         self._build_learned_loss(with_key_linear=False)
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:

@@ -37,7 +37,7 @@ class MlpModel(RecurrentNavModel):
         self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
         self.layer1 = nn.Linear(c * 4 + c + 4 + NUM_ACTIONS, WIDTH)
         self.layer2 = nn.Linear(WIDTH, WIDTH)
-        self._build_recurrent_core(WIDTH, glorot=False)
+        self.build_recurrent_core(WIDTH, glorot=False)
 
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor

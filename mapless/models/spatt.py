@@ -55,7 +55,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_memory = nn.Conv1d(hidden, EMBED, 1)
         self.memory_alpha = nn.Conv1d(hidden, 3, 1)
         self.dropout = Dropout(config.dropout)
-        self._build_recurrent_core(EMBED * GRID * GRID)
+        self.build_recurrent_core(EMBED * GRID * GRID)
         self._build_learned_loss(with_key_linear=False)  # EOTP has no ll_key / ll_linear
 
     @staticmethod
