@@ -37,19 +37,18 @@ def test_builtin_sets_match_the_protocol(split):  # the reference sets: tests/te
     assert all(e.start[3] == 0 and e.optimal_length >= 2 for e in episodes)
 
 
-def test_the_standard_sets_start_on_islands_only_where_the_target_is_reachable(library):
-    # Made before pose-graph islands were known, and kept (Protocol.island_starts): three starts lie
-    # on an island, each still reaching its target; no start anywhere is unwinnable.
-    on_islands = []
+def test_no_built_in_set_starts_on_a_pose_graph_island(library):
+    # The three island starts the standard and paper sets once held (test/bedroom/185,
+    # test/bathroom/234, paper/bathroom/175) were redrawn; the first 100 episodes of each room type,
+    # which the small budgets report on, did not change. (The reference sets: tests/test_protocols.py.)
+    on_island_scenes = 0
     for split in ("val", "test", "paper"):
         for e in evalsets.load(evalsets.builtin_path(split))[0]:
-            if e.scene not in ("FloorPlan326", "FloorPlan427", "FloorPlan428"):
-                continue
             data, pose = library[e.scene], library.pose_of(e.scene, e.start)
+            assert data.usable_poses[pose], e.episode_id
             assert data.optimal_length(pose, e.target) == e.optimal_length
-            if not data.usable_poses[pose]:
-                on_islands.append(e.episode_id)
-    assert on_islands == ["test/bedroom/185", "test/bathroom/234", "paper/bathroom/175"]
+            on_island_scenes += not data.usable_poses.all()
+    assert on_island_scenes > 50  # scenes with islands are sampled, their islands never
 
 
 def test_regeneration_is_bit_for_bit(library):

@@ -3,8 +3,7 @@
 Per room type, ``per_room`` episodes: scene uniform over the split's scenes of the room, target
 drawn over visible instances of the room's targets (as in training), start a uniform (position,
 yaw) at horizon 0 from which the target is reachable, in the scene's usable pose-graph component
-(``SceneData.usable_poses``; the ``standard`` and ``paper`` sets predate that rule, see
-``Protocol.island_starts``). Under the ``standard`` and ``paper`` protocols the start must not already
+(``SceneData.usable_poses``). Under the ``standard`` and ``paper`` protocols the start must not already
 see the target; the ``reference`` protocol's sets (``ref_val``, ``ref_test``) allow it, as the
 references' published sets do. The optimal length (actions including ``Done``) is stored. The file
 records the simulator fingerprint it was made with; loading it under other simulator parameters is
@@ -80,7 +79,7 @@ def make_eval_set(
             distance = int(data.target_distances(target)[start])
             if distance < nearest:  # unreachable (-1), or in view (0) where the protocol refuses that
                 continue
-            if not (protocol.island_starts or data.usable_poses[start]):
+            if not data.usable_poses[start]:
                 continue
             episodes.append(
                 Episode(

@@ -28,18 +28,14 @@ from mapless.sim.config import SimConfig
 class Protocol:
     """select_split / report_split: evaluation-set splits (``mapless.scenes.catalogue.SPLITS``);
     equal when selection and report share their episodes. visible_starts: the protocol's evaluation
-    sets may start with the target already in view. island_starts: they may start on a pose-graph
-    island (``SceneData.usable_poses``) from which the target is still reachable: the ``standard``
-    and ``paper`` sets, made before islands were known, hold three such starts (test/bedroom/185,
-    test/bathroom/234, paper/bathroom/175; each sees its target after one or two turns), kept so
-    that results measured on them stay comparable."""
+    sets may start with the target already in view. No protocol's sets start on a pose-graph island
+    (``SceneData.usable_poses``)."""
 
     name: str
     select_split: str
     report_split: str
     visibility_distance: float
     visible_starts: bool
-    island_starts: bool
     label: str
 
     def sim(self, config: SimConfig) -> SimConfig:
@@ -49,16 +45,16 @@ class Protocol:
 
 PROTOCOLS: dict[str, Protocol] = {
     "standard": Protocol(
-        "standard", "val", "test", 1.0, False, True,
+        "standard", "val", "test", 1.0, False,
         "selected on val (x21-x25), reported once on test (x26-x30); success within 1.0 m",
     ),
     "paper": Protocol(
-        "paper", "paper", "paper", 1.0, False, True,
+        "paper", "paper", "paper", 1.0, False,
         "PAPER PROTOCOL: selected and reported on the same x21-x30 episodes (optimistic, as in the "
         "paper/MJOLNIR); success within 1.0 m",
     ),
     "reference": Protocol(
-        "reference", "ref_val", "ref_test", 1.5, True, False,
+        "reference", "ref_val", "ref_test", 1.5, True,
         "REFERENCE PROTOCOL (the SAVN/MJOLNIR data's): success within 1.5 m, selected on val (odd "
         "x21-x29), reported once on test (even x22-x30), starts may see the target",
     ),
