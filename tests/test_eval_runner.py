@@ -120,17 +120,17 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
         agent.after_step(actions, env.step(actions))
     assert agent.updates.tolist() == [1, 1, 1]
     name = "actor_linear.weight"
-    moved = (agent.state.fast[name] - theta[name]).abs().amax(dim=(1, 2))
+    moved = (agent.adapter.state.fast[name] - theta[name]).abs().amax(dim=(1, 2))
     assert bool((moved > 0).all())
     block = slice(0, agent.k)  # the LSTM matrices' first inner step: each slot's first factor block
-    assert bool((agent.state.left[:, block].abs().amax(dim=(1, 2)) > 0).all())
-    assert not agent.state.left[:, agent.k :].any()
+    assert bool((agent.adapter.state.left[:, block].abs().amax(dim=(1, 2)) > 0).all())
+    assert not agent.adapter.state.left[:, agent.k :].any()
     # φ and θ themselves never change; a new episode starts again from θ.
     for n, p in model.named_parameters():
         assert torch.equal(p, theta[n])
     agent.start(np.array([1]), env)
-    assert torch.equal(agent.state.fast[name][1], theta[name])
-    assert not agent.state.left[1].any() and agent.state.left[0].any()
+    assert torch.equal(agent.adapter.state.fast[name][1], theta[name])
+    assert not agent.adapter.state.left[1].any() and agent.adapter.state.left[0].any()
     assert agent.updates.tolist() == [1, 0, 1]
     assert probs.shape == (batch, 6)
 
@@ -147,11 +147,11 @@ def test_test_time_step_matches_the_training_inner_loop(episodes):
     train_state = training.start(3)
     before = InnerLoop(model, meta_train=False)
     agent = AdaptiveModelAgent(model, 3)
-    agent.loop.reset_slots(agent.state, torch.arange(3))
+    agent.adapter.loop.reset_slots(agent.adapter.state, torch.arange(3))
     obs = synthetic_observations(3, model.knowledge)
     due = torch.tensor([True, False, True])
     logits = []
-    for loop, state in ((training, train_state), (agent.loop, agent.state)):
+    for loop, state in ((training, train_state), (agent.adapter.loop, agent.adapter.state)):
         hidden, prev, rows = model.initial_state(3), torch.zeros(3, 6), []
         for _ in range(6):
             out = loop.forward(state, obs, hidden, prev)
@@ -160,7 +160,7 @@ def test_test_time_step_matches_the_training_inner_loop(episodes):
         loop.adapt(state, torch.stack(rows, dim=1), due)
         logits.append(loop.forward(state, obs, hidden, prev).logits.detach())
     torch.testing.assert_close(logits[1], logits[0], rtol=1e-5, atol=1e-6)
-    assert agent.state.slot_updates.tolist() == [1, 0, 1]
+    assert agent.adapter.state.slot_updates.tolist() == [1, 0, 1]
     fresh = before.start(3)
     hidden, prev = model.initial_state(3), torch.zeros(3, 6)
     for _ in range(6):

@@ -1,5 +1,6 @@
-"""Acting with a policy: which observation keys a model reads, numpy observations to tensors, and
-reproducible action sampling. Shared by training (both algorithms) and evaluation."""
+"""Acting with a policy: which observation keys a model reads, numpy observations to tensors,
+reproducible action sampling, and acting with test-time adaptation. Shared by training (both
+algorithms) and evaluation."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.models.base import NUM_ACTIONS, NavModel
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
 from mapless.sim.vector import OBSERVATION_KEYS
 
 
@@ -64,3 +65,48 @@ def sample_actions(logits: Tensor, noise: Tensor) -> Tensor:
     cdf = torch.softmax(logits.detach(), dim=-1).cumsum(-1)
     action = (cdf < noise.unsqueeze(-1)).sum(-1)
     return action.clamp(max=logits.shape[-1] - 1)  # rounding can leave cdf[-1] a hair below 1
+
+
+class AdaptingActor:
+    """Acting with SAVN's inner loop at its test-time setting: every slot's fast weights adapt in
+    place on the learned interaction loss (:class:`~mapless.agent.meta.InnerLoop` with
+    ``meta_train=False``) while θ and φ stay fixed. The evaluator's adaptive agent and PPO's
+    whole-episode collection act through it."""
+
+    def __init__(self, model: NavModel, batch_size: int):
+        from mapless.agent.meta import InnerLoop
+
+        self.loop = InnerLoop(model, meta_train=False)
+        # θ stays fixed while acting; only the per-episode fast copies take inner gradients.
+        self.frozen = [p for p in model.parameters() if p.requires_grad]
+        for p in self.frozen:
+            p.requires_grad_(False)
+        self.state = self.loop.start(batch_size)
+
+    @property
+    def steps(self) -> int:
+        """k: the interaction steps between two inner updates."""
+        return self.loop.steps
+
+    @property
+    def updates(self) -> np.ndarray:
+        """Inner steps taken by each slot's current episode."""
+        return self.state.slot_updates.numpy()
+
+    def reset_slots(self, slots: Tensor) -> None:
+        """New episodes in ``slots``: their fast weights back to θ."""
+        self.loop.reset_slots(self.state, slots)
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> ModelOutput:
+        return self.loop.forward(self.state, obs, hidden, prev_policy)
+
+    def observe(self, output: ModelOutput, alive: Tensor) -> None:
+        """After a step: every k steps the slots still running (and under their update limit) adapt."""
+        self.loop.observe(self.state, output, alive)
+
+    def close(self) -> None:
+        """θ trainable again (training resumes after acting)."""
+        for p in self.frozen:
+            p.requires_grad_(True)

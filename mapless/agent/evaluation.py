@@ -90,27 +90,23 @@ class AdaptiveModelAgent(ModelAgent):
 
     def __init__(self, model, batch_size: int):
         super().__init__(model, batch_size)
-        from mapless.agent.meta import InnerLoop
+        from mapless.agent.acting import AdaptingActor
 
-        torch = self.torch
-        self.loop = InnerLoop(model, meta_train=False)
-        for p in model.parameters():
-            p.requires_grad_(False)  # θ and φ stay fixed; only the per-episode fast copies adapt
-        self.state = self.loop.start(batch_size)
-        self.k = self.loop.steps
+        self.adapter = AdaptingActor(model, batch_size)  # θ and φ fixed for the whole evaluation
+        self.k = self.adapter.steps
         self.start_every = self.k
-        self.alive = torch.zeros(batch_size, dtype=torch.bool)
+        self.alive = self.torch.zeros(batch_size, dtype=self.torch.bool)
         self.output = None  # the last step's ModelOutput, for the inner loop's k-row buffer
 
     @property
     def updates(self) -> np.ndarray:
         """Inner steps taken by each slot's current episode."""
-        return self.state.slot_updates.numpy()
+        return self.adapter.updates
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
         torch = self.torch
         index = torch.as_tensor(slots, dtype=torch.long)
-        self.loop.reset_slots(self.state, index)
+        self.adapter.reset_slots(index)
         with torch.no_grad():
             for tensor in (*self.hidden, self.prev_policy):
                 tensor[index] = 0.0
@@ -120,7 +116,7 @@ class AdaptiveModelAgent(ModelAgent):
         torch = self.torch
         # The graph must reach the current fast weights; only k steps of it are ever kept.
         with self.model.memoizing_in_view(self.memo):
-            self.output = self.loop.forward(self.state, self._tensors(obs), self.hidden, self.prev_policy)
+            self.output = self.adapter.forward(self._tensors(obs), self.hidden, self.prev_policy)
         probs = torch.softmax(self.output.logits, dim=-1)
         self.hidden = self.output.hidden
         self.prev_policy = probs
@@ -128,8 +124,7 @@ class AdaptiveModelAgent(ModelAgent):
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
         self.alive &= ~self.torch.from_numpy(step.terminated | step.truncated)
-        # Every k steps the slots still running, and under their update limit, take an inner step.
-        self.loop.observe(self.state, self.output, self.alive)
+        self.adapter.observe(self.output, self.alive)
 
 
 class OracleAgent:

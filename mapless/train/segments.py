@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapless.agent.acting import sample_actions, to_tensors
+from mapless.agent.acting import AdaptingActor, sample_actions, to_tensors
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.episodes.sampler import TrainingSampler
 from mapless.evaluate.metrics import spl
@@ -124,7 +124,7 @@ class SegmentCollector:
         self._rng: np.random.Generator | None = None
         self._opening = False
         self._starts = np.zeros(n, dtype=bool)
-        self._actor: _AdaptingActor | None = None
+        self._actor: AdaptingActor | None = None
         self._memo: InViewMemo | None = None
         self._record: dict[str, list] = {}
         self._finished: list[tuple[bool, float, int, float]] = []
@@ -167,7 +167,7 @@ class SegmentCollector:
         if self.whole_episodes:
             self.loop.free[:] = True
             self._opening = True
-            self._actor = _AdaptingActor(self.model, n)
+            self._actor = AdaptingActor(self.model, n)
         self._rng, self._memo = rng, InViewMemo(max_rows=None)
         h0 = tuple(t.detach().clone() for t in self.hidden)
         self._record = {k: [] for k in _RECORDED}
@@ -274,29 +274,3 @@ class SegmentCollector:
         rows = tuple(t.index_select(0, index) for t in hidden)
         with torch.no_grad(), self.model.memoizing_in_view(self._memo):
             return self.model(obs, rows, policy.index_select(0, index)).value.reshape(-1)
-
-
-class _AdaptingActor:
-    """Acting with SAVN's inner loop at its test-time setting (fast weights adapted in place)."""
-
-    def __init__(self, model: NavModel, batch: int):
-        from mapless.agent.meta import InnerLoop
-
-        self.loop = InnerLoop(model, meta_train=False)
-        # θ stays fixed while acting; only the per-episode fast copies take inner gradients.
-        self.params = [p for p in model.parameters() if p.requires_grad]
-        for p in self.params:
-            p.requires_grad_(False)
-        self.state = self.loop.start(batch)
-
-    def close(self) -> None:
-        for p in self.params:
-            p.requires_grad_(True)
-
-    def forward(
-        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> ModelOutput:
-        return self.loop.forward(self.state, obs, hidden, prev_policy)
-
-    def observe(self, output: ModelOutput, alive: Tensor) -> None:
-        self.loop.observe(self.state, output, alive)
