@@ -82,10 +82,14 @@ def test_the_medium_budget_is_small_for_longer_nested_keys_merged() -> None:
     assert cvmeta_medium.frames > cvmeta_small.frames
 
 
-def test_a_budget_extending_itself_or_an_unknown_budget_is_refused(tmp_path: Path) -> None:
+def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path: Path) -> None:
     (tmp_path / "small.yaml").write_text("extends: small\nseeds: 2\n")
-    with pytest.raises(ConfigError, match="cannot extend itself"):
+    with pytest.raises(ConfigError, match="in a circle"):
         read_budget("small", tmp_path)
+    (tmp_path / "smoke.yaml").write_text("extends: full\n")
+    (tmp_path / "full.yaml").write_text("extends: smoke\n")
+    with pytest.raises(ConfigError, match="smoke -> full -> smoke"):
+        read_budget("smoke", tmp_path)
     (tmp_path / "medium.yaml").write_text("extends: large\n")
     with pytest.raises(UnknownNameError, match="large"):
         read_budget("medium", tmp_path)

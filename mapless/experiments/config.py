@@ -138,7 +138,7 @@ def read_experiment(path: Path, overrides: list[str] | None = None) -> Experimen
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
 
 
-def read_budget(budget: str, directory: Path | None = None) -> dict:
+def read_budget(budget: str, directory: Path | None = None, _extending: tuple[str, ...] = ()) -> dict:
     """The mapping of ``experiments/budgets/<budget>.yaml``. A budget file that says ``extends: B``
     is read over B's mapping key by key, nested mappings included, so a longer budget states only
     what it changes (``medium`` is ``small`` for longer). ``directory``: the budgets folder (tests)."""
@@ -149,9 +149,10 @@ def read_budget(budget: str, directory: Path | None = None) -> dict:
     base = data.pop("extends", None)
     if base is None:
         return data
-    if base == budget:
-        raise ConfigError(f"{path}: a budget cannot extend itself")
-    return _merge(read_budget(base, directory), data)
+    chain = (*_extending, budget)
+    if base in chain:
+        raise ConfigError(f"{path}: budgets cannot extend in a circle ({' -> '.join((*chain, base))})")
+    return _merge(read_budget(base, directory, chain), data)
 
 
 def load_experiment(
