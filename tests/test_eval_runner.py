@@ -204,7 +204,7 @@ def test_bf16_autocast_policy_matches_float32_up_to_rounding():
     exact = ModelAgent(model, 4).policy(obs, None)
     fast_agent = ModelAgent(model, 4, bf16=True)
     fast = fast_agent.policy(obs, None)
-    assert fast.dtype == exact.dtype and fast_agent.hidden[0].dtype == torch.float32
+    assert fast.dtype == exact.dtype and fast_agent.memory.hidden[0].dtype == torch.float32
     np.testing.assert_allclose(fast, exact, atol=2e-3)
     np.testing.assert_allclose(fast.sum(axis=1), 1.0, atol=1e-6)
 

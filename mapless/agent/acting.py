@@ -1,6 +1,6 @@
-"""Acting with a policy: which observation keys a model reads, numpy observations to tensors,
-reproducible action sampling, and acting with test-time adaptation. Shared by training (both
-algorithms) and evaluation."""
+"""Acting with a policy: which observation keys a model reads, numpy observations to tensors, what a
+recurrent policy carries from step to step, reproducible action sampling, and acting with test-time
+adaptation. Shared by training (both algorithms) and evaluation."""
 
 from __future__ import annotations
 
@@ -10,6 +10,36 @@ from torch import Tensor
 
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
 from mapless.sim.vector import OBSERVATION_KEYS
+
+
+class PolicyMemory:
+    """What a recurrent policy carries from one step to the next, per slot: the LSTM state ``(h, c)``
+    and the previous step's policy (an input of every model, as in SAVN). Zero at an episode's start.
+
+    Every update is out of place, so a graph through an earlier step (training, test-time
+    adaptation) keeps the values it was built with."""
+
+    def __init__(self, model: NavModel, batch_size: int, device: torch.device | None = None):
+        self.hidden: tuple[Tensor, Tensor] = model.initial_state(batch_size, device)
+        self.prev_policy: Tensor = torch.zeros(batch_size, NUM_ACTIONS, device=device)
+
+    def reset(self, slots: Tensor) -> None:
+        """New episodes in ``slots``."""
+        self.hidden = (self.hidden[0].index_fill(0, slots, 0.0), self.hidden[1].index_fill(0, slots, 0.0))
+        self.prev_policy = self.prev_policy.index_fill(0, slots, 0.0)
+
+    def keep(self, rows: Tensor) -> None:
+        """Only ``rows`` go on (the others' episodes ended)."""
+        self.hidden = (self.hidden[0].index_select(0, rows), self.hidden[1].index_select(0, rows))
+        self.prev_policy = self.prev_policy.index_select(0, rows)
+
+    def advance(self, output: ModelOutput) -> Tensor:
+        """Carry ``output``'s state to the next step (in float32 whatever the compute dtype) and
+        return its policy. The next step differentiates into this one through whatever of
+        ``output`` the caller did not detach."""
+        self.hidden = (output.hidden[0].float(), output.hidden[1].float())
+        self.prev_policy = torch.softmax(output.logits.float(), dim=-1)
+        return self.prev_policy
 
 
 class _RecordingObs(dict):

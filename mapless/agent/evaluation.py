@@ -43,12 +43,11 @@ class ModelAgent:
 
             keep_compiled_kernels()
         self.model = model.eval()
-        from mapless.agent.acting import observation_keys
+        from mapless.agent.acting import PolicyMemory, observation_keys
 
         # Gathering the feature map is the costly part of a step; skip it for models that ignore it.
         self.observation_keys = observation_keys(model)
-        self.hidden = model.initial_state(batch_size)
-        self.prev_policy = torch.zeros(batch_size, NUM_ACTIONS)
+        self.memory = PolicyMemory(model, batch_size)
         # The parameters are fixed for the whole evaluation, so the object GCNs' results are reused
         # across steps and episodes (mapless.models.memo).
         from mapless.models.memo import InViewMemo
@@ -56,23 +55,18 @@ class ModelAgent:
         self.memo = InViewMemo()
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        index = self.torch.as_tensor(slots, dtype=self.torch.long)
-        for tensor in (*self.hidden, self.prev_policy):
-            tensor[index] = 0.0
+        self.memory.reset(self.torch.as_tensor(slots, dtype=self.torch.long))
 
     def _tensors(self, obs: dict[str, np.ndarray]) -> dict:
         return {k: self.torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
         torch = self.torch
+        memory = self.memory
         with torch.inference_mode(), self.model.memoizing_in_view(self.memo):
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-                out = self.model(self._tensors(obs), self.hidden, self.prev_policy)
-            probs = torch.softmax(out.logits.float(), dim=-1)
-        # Clone out of inference mode so start() can write rows in place.
-        self.hidden = (out.hidden[0].float().clone(), out.hidden[1].float().clone())
-        self.prev_policy = probs.clone()
-        return probs.numpy()
+                out = self.model(self._tensors(obs), memory.hidden, memory.prev_policy)
+            return memory.advance(out).numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
         pass
@@ -104,23 +98,18 @@ class AdaptiveModelAgent(ModelAgent):
         return self.adapter.updates
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        torch = self.torch
-        index = torch.as_tensor(slots, dtype=torch.long)
+        index = self.torch.as_tensor(slots, dtype=self.torch.long)
         self.adapter.reset_slots(index)
-        with torch.no_grad():
-            for tensor in (*self.hidden, self.prev_policy):
-                tensor[index] = 0.0
+        self.memory.reset(index)
         self.alive[index] = True
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
-        torch = self.torch
-        # The graph must reach the current fast weights; only k steps of it are ever kept.
+        memory = self.memory
+        # The graph must reach the current fast weights; only k steps of it are ever kept (SAVN: the
+        # next step's input policy is not detached, so the inner gradient flows through it too).
         with self.model.memoizing_in_view(self.memo):
-            self.output = self.adapter.forward(self._tensors(obs), self.hidden, self.prev_policy)
-        probs = torch.softmax(self.output.logits, dim=-1)
-        self.hidden = self.output.hidden
-        self.prev_policy = probs
-        return probs.detach().numpy()
+            self.output = self.adapter.forward(self._tensors(obs), memory.hidden, memory.prev_policy)
+        return memory.advance(self.output).detach().numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
         self.alive &= ~self.torch.from_numpy(step.terminated | step.truncated)

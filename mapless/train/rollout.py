@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.agent.acting import sample_actions, to_tensors
+from mapless.agent.acting import PolicyMemory, sample_actions, to_tensors
 from mapless.agent.buffers import BufferPool
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.meta import InnerLoop, InnerLoopState
@@ -161,8 +161,7 @@ class _LockstepRecorder:
         self.observation_keys = obs_keys
         self.noise = torch.as_tensor(noise, dtype=torch.float32, device=device)
         self.batch = noise.shape[0]
-        self.hidden = actor.model.initial_state(self.batch, device)
-        self.prev_policy = torch.zeros(self.batch, NUM_ACTIONS, device=device)
+        self.memory = PolicyMemory(actor.model, self.batch, device)
         self.rows = torch.arange(self.batch, device=device)  # batch rows of the actor's current rows
         self.output: ModelOutput | None = None
         self.logits: list[Tensor] = []
@@ -181,10 +180,10 @@ class _LockstepRecorder:
                 np.flatnonzero(np.isin(self.rows.cpu().numpy(), slots)), device=self.device
             )
             self.rows = self.rows.index_select(0, keep)
-            self.hidden = tuple(h.index_select(0, keep) for h in self.hidden)
-            self.prev_policy = self.prev_policy.index_select(0, keep)
+            self.memory.keep(keep)
             self.actor.compact(keep)
-        self.output = self.actor.forward(to_tensors(obs, self.device), self.hidden, self.prev_policy)
+        memory = self.memory
+        self.output = self.actor.forward(to_tensors(obs, self.device), memory.hidden, memory.prev_policy)
         t = len(self.logits)
         return sample_actions(self.output.logits, self.noise[self.rows, t]).cpu().numpy()
 
@@ -197,7 +196,7 @@ class _LockstepRecorder:
         self.rewards.append(step.reward)
         self.mask.append(step.active.astype(np.float32))
         # SAVN feeds the previous step's policy (not detached) and carries (h, c) through the episode.
-        self.hidden, self.prev_policy = out.hidden, torch.softmax(out.logits, dim=-1)
+        self.memory.advance(out)
         self.actor.observe(out, torch.as_tensor(~env.done[slots], device=self.device))
 
     def trajectory(self, env: BatchedNavEnv) -> Trajectory:

@@ -27,11 +27,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapless.agent.acting import AdaptingActor, sample_actions, to_tensors
+from mapless.agent.acting import AdaptingActor, PolicyMemory, sample_actions, to_tensors
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.episodes.sampler import TrainingSampler
 from mapless.evaluate.metrics import spl
-from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
+from mapless.models.base import ModelOutput, NavModel
 from mapless.models.memo import InViewMemo
 from mapless.sim.episode import Episode
 from mapless.sim.vector import BatchedNavEnv, BatchStep
@@ -116,8 +116,7 @@ class SegmentCollector:
         self.whole_episodes = whole_episodes
         self.expert = expert
         n = env.batch_size
-        self.hidden = model.initial_state(n, device)
-        self.prev_policy = torch.zeros(n, NUM_ACTIONS, device=device)
+        self.memory = PolicyMemory(model, n, device)
         self.reward_sum = np.zeros(n)
         self.loop = EpisodeLoop(env, self, feed=self._feed)
         # per collect(): the generator, the acting state and what is recorded
@@ -140,8 +139,8 @@ class SegmentCollector:
             "steps": torch.as_tensor(env.steps),
             "done": torch.as_tensor(env.done),
             "seen_parents": torch.as_tensor(env.seen_parents),
-            "hidden": [t.detach().cpu() for t in self.hidden],
-            "prev_policy": self.prev_policy.cpu(),
+            "hidden": [t.detach().cpu() for t in self.memory.hidden],
+            "prev_policy": self.memory.prev_policy.cpu(),
             "reward_sum": torch.as_tensor(self.reward_sum),
             "needs_episode": torch.as_tensor(self.loop.free),
         }
@@ -155,8 +154,8 @@ class SegmentCollector:
         env.steps[:] = state["steps"].numpy()
         env.done[:] = state["done"].numpy()
         env.seen_parents[:] = state["seen_parents"].numpy()
-        self.hidden = tuple(t.to(self.device) for t in state["hidden"])
-        self.prev_policy = state["prev_policy"].to(self.device)
+        self.memory.hidden = tuple(t.to(self.device) for t in state["hidden"])
+        self.memory.prev_policy = state["prev_policy"].to(self.device)
         self.reward_sum = state["reward_sum"].numpy().copy()
         self.loop.free[:] = state["needs_episode"].numpy()
 
@@ -169,7 +168,7 @@ class SegmentCollector:
             self._opening = True
             self._actor = AdaptingActor(self.model, n)
         self._rng, self._memo = rng, InViewMemo(max_rows=None)
-        h0 = tuple(t.detach().clone() for t in self.hidden)
+        h0 = tuple(t.detach().clone() for t in self.memory.hidden)
         self._record = {k: [] for k in _RECORDED}
         self._finished = []
         try:
@@ -200,25 +199,23 @@ class SegmentCollector:
             return torch.zeros(n, device=self.device)
         obs = to_tensors(self.env.observe(self.observation_keys), self.device)
         with torch.no_grad(), self.model.memoizing_in_view(self._memo):
-            return self.model(obs, self.hidden, self.prev_policy).value.reshape(n)
+            return self.model(obs, self.memory.hidden, self.memory.prev_policy).value.reshape(n)
 
     # -- the loop's agent ----------------------------------------------------------------------------
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        index = torch.as_tensor(slots, device=self.device)
-        self.hidden = tuple(t.index_fill(0, index, 0.0) for t in self.hidden)
-        self.prev_policy = self.prev_policy.index_fill(0, index, 0.0)
+        self.memory.reset(torch.as_tensor(slots, device=self.device))
         self.reward_sum[slots] = 0.0
         self._starts[slots] = True
 
     def act(self, obs: dict[str, np.ndarray], slots: np.ndarray, env: BatchedNavEnv) -> np.ndarray:
         n, device = env.batch_size, self.device
-        tensors = to_tensors(obs, device)
+        tensors, memory = to_tensors(obs, device), self.memory
         with self.model.memoizing_in_view(self._memo):
             if self._actor is not None:
-                out = self._actor.forward(tensors, self.hidden, self.prev_policy)
+                out = self._actor.forward(tensors, memory.hidden, memory.prev_policy)
             else:
                 with torch.no_grad():
-                    out = self.model(tensors, self.hidden, self.prev_policy)
+                    out = self.model(tensors, memory.hidden, memory.prev_policy)
         noise = torch.as_tensor(self._rng.random(n), dtype=torch.float32, device=device)
         action = sample_actions(out.logits.detach(), noise)
         expert = env.expert_actions() if self.expert else np.full(n, -1)
@@ -232,16 +229,16 @@ class SegmentCollector:
         # Whole episodes follow the references (R = 0 at the step limit): a truncation is an end there.
         cut_is_end = np.bool_(self.whole_episodes)
         bootstrap = torch.zeros(n, device=device)
+        prev_policy = self.memory.prev_policy  # the one this step was given
         # The inner loop's test-time steps differentiate through the recurrence back to the start
-        # of their chunk (it cuts the graph there itself), as the replay and the evaluator do.
+        # of their chunk (it cuts the graph there itself), as the replay does; the policy given to
+        # the next step is a constant, as in the replay, which reads it from the record.
         hidden = out.hidden if self._actor is not None else tuple(t.detach() for t in out.hidden)
-        policy = torch.softmax(logits, dim=-1)
+        self.memory.advance(ModelOutput(logits, out.value, hidden))
         if self._actor is not None:
             self._actor.observe(out, torch.as_tensor(~env.done, device=device))
         elif step.truncated.any():
-            bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(
-                step.truncated, hidden, policy
-            )
+            bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(step.truncated)
         self.reward_sum += step.reward
         for slot in np.flatnonzero(step.terminated | step.truncated):
             length, success = int(env.steps[slot]), bool(step.success[slot])
@@ -250,7 +247,7 @@ class SegmentCollector:
         action = acted.action
         for key, value in (
             ("obs", acted.obs),
-            ("prev_policy", self.prev_policy),
+            ("prev_policy", prev_policy),
             ("starts", torch.as_tensor(self._starts, device=device)),
             ("actions", action),
             ("log_prob", F.log_softmax(logits, -1).gather(-1, action.unsqueeze(-1)).squeeze(-1)),
@@ -264,13 +261,13 @@ class SegmentCollector:
         ):
             self._record[key].append(value)
         self._starts = np.zeros(n, dtype=bool)
-        self.hidden, self.prev_policy = hidden, policy
 
-    def _values_after(self, slots: np.ndarray, hidden: tuple[Tensor, Tensor], policy: Tensor) -> Tensor:
+    def _values_after(self, slots: np.ndarray) -> Tensor:
         """V of the states the truncated episodes in ``slots`` were cut in."""
         index = torch.as_tensor(np.flatnonzero(slots), device=self.device)
         obs = to_tensors(self.env.observe(self.observation_keys), self.device)
         obs = {k: v.index_select(0, index) for k, v in obs.items()}
-        rows = tuple(t.index_select(0, index) for t in hidden)
+        memory = self.memory
+        rows = tuple(t.index_select(0, index) for t in memory.hidden)
         with torch.no_grad(), self.model.memoizing_in_view(self._memo):
-            return self.model(obs, rows, policy.index_select(0, index)).value.reshape(-1)
+            return self.model(obs, rows, memory.prev_policy.index_select(0, index)).value.reshape(-1)
