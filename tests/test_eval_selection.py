@@ -15,7 +15,7 @@ from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
-from mapless.evaluate.selection import _cached_evaluate, best_index, load_episodes
+from mapless.evaluate.selection import best_index, cached_evaluate, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
 from mapless.train.run import train
@@ -88,7 +88,7 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
 
     def evaluated(**changes) -> bool:
         """True if the call evaluated; False if it returned the cached results (marked below)."""
-        run = _cached_evaluate(spec, episodes, replace(settings, **changes), scenes, cache)
+        run = cached_evaluate(spec, episodes, replace(settings, **changes), scenes, cache)
         return run.seconds != -1.0
 
     assert evaluated()

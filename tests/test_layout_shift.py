@@ -186,6 +186,10 @@ eval:
     shifted = next(m for m in payload["models"] if m["model"] == "a3c | variants | shifted")
     assert {e["scene"] for e in shifted["episodes"][0]} == {"FloorPlan26@gen:0"}
     assert "a3c__layouts__" in shifted["runs"][0]["run_dir"]
+    # Each trained row's shifted results are kept beside its other evaluations, for the next reproduce.
+    for row in ("all", "layouts"):
+        (kept,) = (root / "runs").glob(f"a3c__{row}__*/eval/shifted_*.json")
+        assert len(json.loads(kept.read_text())["episodes"]) == 4
     comparisons = {(d["comparison"], d["test_on"]) for d in payload["variants_minus_default"]}
     assert comparisons == {("a3c", "default"), ("a3c", "shifted")}
     focus = {(d["comparison"], d["test_on"]) for d in payload["focus_minus_model"]}

@@ -124,7 +124,7 @@ class Selection:
         }
 
 
-def _cached_evaluate(
+def cached_evaluate(
     spec: AgentSpec,
     episodes: list[Episode],
     settings: EvalSettings,
@@ -185,7 +185,7 @@ def select_and_report(
     for episodes_done, path in candidates(run_dir):
         spec = AgentSpec(checkpoint=str(path))
         cache = run_dir / "eval" / f"{select_split}_{path.stem}.json"
-        run = _cached_evaluate(spec, select_episodes, settings, library, cache)
+        run = cached_evaluate(spec, select_episodes, settings, library, cache)
         m = aggregate(run.results)
         scores.append(
             {
@@ -203,7 +203,7 @@ def select_and_report(
         report = runs[best]
     else:
         cache = run_dir / "eval" / f"{report_split}_{Path(chosen).stem}.json"
-        report = _cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
+        report = cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
     return Selection(protocol, label, chosen, int(scores[best]["episodes"]), scores, report)
 
 

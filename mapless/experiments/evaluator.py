@@ -13,7 +13,7 @@ from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-from mapless.evaluate.selection import evaluate_run, load_episodes
+from mapless.evaluate.selection import cached_evaluate, evaluate_run, load_episodes
 from mapless.experiments.config import ExperimentConfig, train_config
 from mapless.sim.episode import Episode
 
@@ -68,13 +68,20 @@ class Evaluator:
         return str(resolve_model_file(run_dir))
 
     def on(
-        self, episodes: list[Episode], model: str, train_cfg=None, checkpoint: str | None = None
+        self,
+        episodes: list[Episode],
+        model: str,
+        train_cfg=None,
+        checkpoint: str | None = None,
+        cache: Path | None = None,
     ) -> list[EpisodeResult]:
-        """One agent (an untrained ``model``, or a ``checkpoint`` of a run) on other ``episodes``."""
+        """One agent (an untrained ``model``, or a ``checkpoint`` of a run) on other ``episodes``;
+        ``cache``: a file that keeps the results for the same checkpoint, episodes and settings."""
         if checkpoint is None:
             return evaluate(AgentSpec(model={"name": model}), episodes, self.settings, self.scenes).results
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
-        return evaluate(AgentSpec(checkpoint=checkpoint), episodes, settings, self.library(train_cfg)).results
+        spec, library = AgentSpec(checkpoint=checkpoint), self.library(train_cfg)
+        return cached_evaluate(spec, episodes, settings, library, cache).results
 
     def library(self, train_cfg) -> LibrarySpec:
         """A run's scenes; they must be the experiment's, which its episode sets were checked against."""

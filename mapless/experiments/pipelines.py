@@ -180,7 +180,8 @@ def _shift_row(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: 
         results, info = ev.trained(run_dir, cfg)
         chosen = ev.chosen_model(run_dir, info)
         out["default"].append(results)
-        out["shifted"].append(ev.on(ev.shift_episodes, model, cfg, chosen))
+        cache = run_dir / "eval" / f"shifted_{Path(chosen).stem}.json"
+        out["shifted"].append(ev.on(ev.shift_episodes, model, cfg, chosen, cache))
         tally.finish(trained_share)
         meta.append({"run_dir": str(run_dir), "model_file": chosen, **info})
     return out, meta
