@@ -283,3 +283,18 @@ def test_progress_reward_telescopes_to_the_change_of_distance(library):
     expected = 0.5 * (distances[starts] - distances[shaped.pose])
     np.testing.assert_allclose(difference, expected, atol=1e-5)
     assert np.abs(expected).max() > 0
+
+
+def test_feature_maps_are_gathered_into_one_array_only_when_read(library):
+    scenes = [SCENE, "FloorPlan26"]
+    env = BatchedNavEnv(library, scenes, 2)
+    other = library["FloorPlan26"]
+    env.reset(np.arange(2), [far_episode(library)[0], Episode("FloorPlan26", "Toaster", other.pose_tuple(5))])
+    env.observe(("context", "target_embedding", "target_index"))
+    assert "features" not in vars(env)  # a model that never reads them costs no copy
+    features = env.observe(("features",))["features"]
+    for slot, scene in enumerate(scenes):
+        data, pose = library[scene], env.pose[slot] - env.scene_offset[scene]
+        np.testing.assert_array_equal(
+            features[slot], data.features[pose].astype(np.float32) * data.feature_scale
+        )

@@ -12,6 +12,7 @@ them a new episode, which suits lockstep rollouts of whole episodes (the meta-le
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,7 +77,7 @@ class BatchedNavEnv:
             ]
         )
         self.context = np.concatenate([d.context for d in datas])
-        self.features = np.concatenate([d.features for d in datas])
+        self._datas = datas
         self.feature_scale = np.float32(datas[0].feature_scale)
         self.n_poses = len(self.successors)
         self._goal_ids: dict[tuple, int] = {}
@@ -214,6 +215,13 @@ class BatchedNavEnv:
         truncated = active & ~is_done & (self.steps >= self.max_steps)
         self.done = self.done | is_done | truncated
         return BatchStep(reward, is_done, truncated, success, failed, active)
+
+    @functools.cached_property
+    def features(self) -> np.ndarray:
+        """Every scene's feature maps as one pose-indexed array, made when first read: an environment
+        for a model that never reads them (cvmeta, mjolnir_o, mlp) holds no second copy of the
+        largest arrays of its scenes (about 24 MB for a large kitchen)."""
+        return np.concatenate([d.features for d in self._datas])
 
     def observe(self, keys: tuple[str, ...] = OBSERVATION_KEYS) -> dict:
         """Observation arrays of the current poses, float32 (docs/observations.md)."""
