@@ -138,6 +138,7 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
 def test_test_time_step_matches_the_training_inner_loop(episodes):
     """The evaluator's in-place step with per-slot factor blocks gives the same policy as the
     training inner loop's (differentiable, growing-factor) step on the same rows."""
+    from mapless.agent.adaptation import TestTimeAdaptation
     from mapless.agent.meta import InnerLoop
     from mapless.models.synthetic import synthetic_observations
 
@@ -145,7 +146,7 @@ def test_test_time_step_matches_the_training_inner_loop(episodes):
     model = build_model("cvmeta", hidden_size=32).eval()
     training = InnerLoop(model)  # before the agent freezes θ and φ
     train_state = training.start(3)
-    before = InnerLoop(model, meta_train=False)
+    before = TestTimeAdaptation(model)
     agent = AdaptiveModelAgent(model, 3)
     agent.adapter.loop.reset_slots(agent.adapter.state, torch.arange(3))
     obs = synthetic_observations(3, model.knowledge)

@@ -6,6 +6,7 @@ The toy task: synthetic observations, reward +1 for MoveAhead (action 0) and -0.
 import pytest
 import torch
 
+from mapless.agent.adaptation import TestTimeAdaptation
 from mapless.agent.meta import InnerLoop
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, model_names
@@ -16,7 +17,7 @@ BATCH, LENGTH, ROLLOUTS = 3, 8, 10  # 240 environment steps per model
 
 
 def rollout(model, knowledge, gen, train: bool):
-    loop = InnerLoop(model, meta_train=train) if model.adaptive else None
+    loop = (InnerLoop(model) if train else TestTimeAdaptation(model)) if model.adaptive else None
     state = loop.start(BATCH) if loop else None
     hidden, policy = model.initial_state(BATCH), torch.zeros(BATCH, 6)
     alive = torch.ones(BATCH, dtype=torch.bool)

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mapless.agent.meta import InnerLoop
+from mapless.agent.adaptation import TestTimeAdaptation
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, registry
 from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel, target_row
@@ -75,7 +75,7 @@ def test_a_layer_named_cell_proj_is_adapted_by_the_inner_loop(build) -> None:
         n for n, _ in model.named_parameters() if n.startswith("ll_tc.")
     }
 
-    loop = InnerLoop(model, meta_train=False)  # test-time adaptation: fast weights change in place
+    loop = TestTimeAdaptation(model)  # fast weights change in place
     state = loop.start(2)
     obs = synthetic_observations(2, model.knowledge)
     hidden, policy = model.initial_state(2), torch.zeros(2, NUM_ACTIONS)

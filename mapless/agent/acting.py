@@ -99,14 +99,14 @@ def sample_actions(logits: Tensor, noise: Tensor) -> Tensor:
 
 class AdaptingActor:
     """Acting with SAVN's inner loop at its test-time setting: every slot's fast weights adapt in
-    place on the learned interaction loss (:class:`~mapless.agent.meta.InnerLoop` with
-    ``meta_train=False``) while θ and φ stay fixed. The evaluator's adaptive agent and PPO's
-    whole-episode collection act through it."""
+    place on the learned interaction loss (:class:`~mapless.agent.adaptation.TestTimeAdaptation`)
+    while θ and φ stay fixed. The evaluator's adaptive agent and PPO's whole-episode collection act
+    through it."""
 
     def __init__(self, model: NavModel, batch_size: int):
-        from mapless.agent.meta import InnerLoop
+        from mapless.agent.adaptation import TestTimeAdaptation
 
-        self.loop = InnerLoop(model, meta_train=False)
+        self.loop = TestTimeAdaptation(model)
         # θ stays fixed while acting; only the per-episode fast copies take inner gradients.
         self.frozen = [p for p in model.parameters() if p.requires_grad]
         for p in self.frozen:
