@@ -21,15 +21,15 @@ from mapless.agent.low_rank import apply_low_rank
 from mapless.models.base import ModelOutput
 
 
-@dataclass
+@dataclass(kw_only=True)
 class AdaptationState(FastWeightState):
     """Per-slot state (create with :meth:`TestTimeAdaptation.start`)."""
 
     #: fixed blocks of low-rank factors, ``-α δ [B, K, 4H]`` and ``[x || h] [B, K, D+H]``.
-    left: Tensor | None = None
-    right: Tensor | None = None
+    left: Tensor
+    right: Tensor
     #: inner steps taken by each slot's current episode.
-    slot_updates: Tensor | None = None
+    slot_updates: Tensor
 
 
 class TestTimeAdaptation(FastWeightForward):
@@ -49,16 +49,11 @@ class TestTimeAdaptation(FastWeightForward):
 
     def start(self, batch_size: int) -> AdaptationState:
         params = dict(self.model.named_parameters())
-        fast = {
-            name: params[name]
-            .detach()
-            .unsqueeze(0)
-            .expand(batch_size, *params[name].shape)
-            .clone()
-            .requires_grad_()
-            for name in self.names
-            if name not in LOW_RANK
-        }
+        fast = {}
+        for name in self.names:
+            if name not in LOW_RANK:  # per-slot copies, updated and reset in place
+                p = params[name].detach()
+                fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
         cell = self.model.lstm
         ids = torch.arange(batch_size, device=cell.weight_ih.device)
         columns = self.max_updates * self.steps
