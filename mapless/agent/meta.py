@@ -34,6 +34,7 @@ Test time runs the same inner steps without a graph: :mod:`mapless.agent.adaptat
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import torch
@@ -263,13 +264,14 @@ def _low_rank_inner_product(
         dim=1,
     ).detach()
     outer_r = torch.stack([_scatter(s.inputs.detach(), s.ids, size) for s in later], dim=1)
-    acted = torch.tensor([s.updates for s in later], device=outer_d.device)
+    acted = [s.updates for s in later]  # nondecreasing: the steps are in time order
     for i, (delta, right, ids) in enumerate(state.factor_records):
-        after = acted > i  # steps that used θ_{i+1} or a later θ (θ_{j+1} = θ_j - α g_j.detach())
-        if not bool(after.any()):
+        # the steps that used θ_{i+1} or a later θ (θ_{j+1} = θ_j - α g_j.detach()): a suffix, a view
+        first = bisect.bisect_right(acted, i)
+        if first == len(acted):
             continue
-        deltas = torch.einsum("bso,bto->bst", _scatter(delta, ids, size), outer_d[:, after])
-        inputs = torch.einsum("bsd,btd->bst", _scatter(right, ids, size), outer_r[:, after])
+        deltas = torch.einsum("bso,bto->bst", _scatter(delta, ids, size), outer_d[:, first:])
+        inputs = torch.einsum("bsd,btd->bst", _scatter(right, ids, size), outer_r[:, first:])
         total = total + (deltas * inputs).sum()
     return total
 
