@@ -89,12 +89,20 @@ def to_tensors(obs: dict[str, np.ndarray], device: torch.device, batch: bool = T
     return out
 
 
-def sample_actions(logits: Tensor, noise: Tensor) -> Tensor:
-    """Inverse-CDF sample of the softmax policy with one uniform number per row (same law as
-    ``multinomial``, but reproducible per episode whatever the batch)."""
-    cdf = torch.softmax(logits.detach(), dim=-1).cumsum(-1)
-    action = (cdf < noise.unsqueeze(-1)).sum(-1)
-    return action.clamp(max=logits.shape[-1] - 1)  # rounding can leave cdf[-1] a hair below 1
+def sample_actions(probabilities: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """Inverse-CDF samples of the policies ``probabilities [B, A]``, one uniform number in [0, 1) per
+    row: the law of ``multinomial``, but each episode's actions depend only on its own numbers,
+    whatever else shares the batch. Training and evaluation both act through it. The CDF is summed in
+    float64 and the number scaled to its last entry, so rounding never selects a zero-probability
+    action past the end."""
+    cdf = np.cumsum(probabilities, axis=1, dtype=np.float64)
+    u = np.asarray(uniforms, dtype=np.float64) * cdf[:, -1]
+    return np.minimum((cdf <= u[:, None]).sum(axis=1), probabilities.shape[1] - 1)
+
+
+def policy_probabilities(logits: Tensor) -> np.ndarray:
+    """``softmax(logits)`` as the numpy array :func:`sample_actions` takes."""
+    return torch.softmax(logits.detach(), dim=-1).cpu().numpy()
 
 
 class AdaptingActor:

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from mapless.agent.acting import sample_actions
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, OracleAgent
 from mapless.evaluate.metrics import EpisodeResult
@@ -42,7 +43,6 @@ from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import NUM_ACTIONS
 from mapless.sim.task import TargetFields, max_steps_for
 from mapless.sim.vector import BatchedNavEnv, BatchStep
 
@@ -208,9 +208,7 @@ class _EvaluationRecorder:
         self.t = env.steps.copy()
         if self.settings.greedy:
             return probs.argmax(axis=1)
-        cdf = np.cumsum(probs, axis=1, dtype=np.float64)
-        u = self.uniforms[np.arange(len(probs)), np.minimum(self.t, self.horizon)] * cdf[:, -1]
-        return np.minimum((cdf <= u[:, None]).sum(axis=1), NUM_ACTIONS - 1)
+        return sample_actions(probs, self.uniforms[np.arange(len(probs)), np.minimum(self.t, self.horizon)])
 
     def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
         self.agent.after_step(actions, step)

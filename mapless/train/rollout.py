@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.agent.acting import PolicyMemory, sample_actions, to_tensors
+from mapless.agent.acting import PolicyMemory, policy_probabilities, sample_actions, to_tensors
 from mapless.agent.buffers import BufferPool
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.meta import InnerLoop, InnerLoopState
@@ -159,7 +159,7 @@ class _LockstepRecorder:
     def __init__(self, actor: Actor, noise: np.ndarray, obs_keys: tuple[str, ...], device: torch.device):
         self.actor, self.device = actor, device
         self.observation_keys = obs_keys
-        self.noise = torch.as_tensor(noise, dtype=torch.float32, device=device)
+        self.noise = noise
         self.batch = noise.shape[0]
         self.memory = PolicyMemory(actor.model, self.batch, device)
         self.rows = torch.arange(self.batch, device=device)  # batch rows of the actor's current rows
@@ -185,7 +185,9 @@ class _LockstepRecorder:
         memory = self.memory
         self.output = self.actor.forward(to_tensors(obs, self.device), memory.hidden, memory.prev_policy)
         t = len(self.logits)
-        return sample_actions(self.output.logits, self.noise[self.rows, t]).cpu().numpy()
+        return sample_actions(
+            policy_probabilities(self.output.logits), self.noise[self.rows.cpu().numpy(), t]
+        )
 
     def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
         out, rows = self.output, self.rows

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapless.agent.acting import AdaptingActor, PolicyMemory, sample_actions, to_tensors
+from mapless.agent.acting import AdaptingActor, PolicyMemory, policy_probabilities, sample_actions, to_tensors
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.episodes.sampler import TrainingSampler
 from mapless.evaluate.metrics import spl
@@ -216,11 +216,10 @@ class SegmentCollector:
             else:
                 with torch.no_grad():
                     out = self.model(tensors, memory.hidden, memory.prev_policy)
-        noise = torch.as_tensor(self._rng.random(n), dtype=torch.float32, device=device)
-        action = sample_actions(out.logits.detach(), noise)
+        action = sample_actions(policy_probabilities(out.logits), self._rng.random(n))
         expert = env.expert_actions() if self.expert else np.full(n, -1)
-        self._acted = _Acted(tensors, ~env.done, out, action, expert)
-        return action.cpu().numpy()
+        self._acted = _Acted(tensors, ~env.done, out, torch.as_tensor(action, device=device), expert)
+        return action
 
     def after_step(self, slots: np.ndarray, actions: np.ndarray, step: BatchStep, env: BatchedNavEnv) -> None:
         n, device, acted = env.batch_size, self.device, self._acted
