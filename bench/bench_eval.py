@@ -80,7 +80,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=32)
-    parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast (non-adaptive models)")
+    parser.add_argument("--bf16", action="store_true", help="precision bf16 (non-adaptive models)")
     args = parser.parse_args()
 
     from mapless.evaluate.runner import AgentSpec, EvalSettings, evaluate
@@ -88,7 +88,7 @@ def main() -> None:
     episodes = bench_episodes(args.episodes)
     print(
         f"{len(episodes)} kitchen test episodes of 100 steps, {args.workers} workers, batch {args.batch_size}"
-        + (", bf16 autocast" if args.bf16 else "")
+        + (", precision bf16" if args.bf16 else "")
     )
     print(
         f"{'model':10s} {'steps/s':>8s} {'vs orig':>8s} {'target':>7s} {'total RSS MB':>12s}  peak RSS MB per process"

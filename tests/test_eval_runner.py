@@ -196,18 +196,29 @@ def test_partition_keeps_scenes_whole_and_balances(episodes):
     assert len(partition(episodes, 5)) == 2  # only two scenes to share out
 
 
-def test_bf16_autocast_policy_matches_float32_up_to_rounding():
+def test_bf16_evaluation_is_training_precision_and_float32_up_to_rounding():
+    """``bf16`` means one thing: the evaluator's policy at bf16 is the training actor's at
+    ``precision: bf16`` (bfloat16 encoders and LSTM products), and float32's up to rounding."""
     from mapless.models.synthetic import synthetic_observations
+    from mapless.train.rollout import make_actor
 
     torch.manual_seed(0)
     model = build_model("mjolnir_o", hidden_size=64)
-    obs = {k: v.numpy() for k, v in synthetic_observations(4, model.knowledge).items()}
+    synthetic = synthetic_observations(4, model.knowledge)
+    obs = {k: v.numpy() for k, v in synthetic.items()}
     exact = ModelAgent(model, 4).policy(obs, None)
     fast_agent = ModelAgent(model, 4, bf16=True)
     fast = fast_agent.policy(obs, None)
     assert fast.dtype == exact.dtype and fast_agent.memory.hidden[0].dtype == torch.float32
     np.testing.assert_allclose(fast, exact, atol=2e-3)
+    assert not np.array_equal(fast, exact)
     np.testing.assert_allclose(fast.sum(axis=1), 1.0, atol=1e-6)
+
+    actor = make_actor(model, precision="bf16")
+    actor.start(4)
+    hidden, prev_policy = model.initial_state(4), torch.zeros(4, 6)
+    training = torch.softmax(actor.forward(synthetic, hidden, prev_policy).logits, -1).detach().numpy()
+    np.testing.assert_array_equal(fast, training)
 
 
 _POOL_THEN_DIE = """

@@ -8,7 +8,13 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
+import torch
 
+from mapless.agent.acting import AdaptingActor, PolicyMemory, observation_keys, step_at_precision
+from mapless.agent.precision import keep_compiled_kernels
+from mapless.agent.rollout_lstm import RolloutLstm
+from mapless.models.base import RecurrentNavModel
+from mapless.models.memo import InViewMemo
 from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS, NUM_ACTIONS
 from mapless.sim.vector import BatchedNavEnv, BatchStep
 
@@ -33,39 +39,35 @@ class ModelAgent:
     start_every = 1
 
     def __init__(self, model, batch_size: int, bf16: bool = False):
-        import torch
-
-        self.torch = torch
+        """``bf16``: step at training's ``precision: bf16`` (:func:`mapless.agent.acting.step_at_precision`)."""
         self.batch_size = batch_size
-        self.bf16 = bf16
-        if bf16:
-            from mapless.agent.precision import keep_compiled_kernels
-
-            keep_compiled_kernels()
         self.model = model.eval()
-        from mapless.agent.acting import PolicyMemory, observation_keys
-
+        # The parameters are fixed for the whole evaluation: one bfloat16 copy of the LSTM matrices.
+        self.lstm = None
+        if bf16 and isinstance(model, RecurrentNavModel):
+            keep_compiled_kernels()
+            self.lstm = RolloutLstm(model.lstm, record=False, dtype=torch.bfloat16)
         # Gathering the feature map is the costly part of a step; skip it for models that ignore it.
         self.observation_keys = observation_keys(model)
         self.memory = PolicyMemory(model, batch_size)
         # The parameters are fixed for the whole evaluation, so the object GCNs' results are reused
         # across steps and episodes (mapless.models.memo).
-        from mapless.models.memo import InViewMemo
-
         self.memo = InViewMemo()
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        self.memory.reset(self.torch.as_tensor(slots, dtype=self.torch.long))
+        self.memory.reset(torch.as_tensor(slots, dtype=torch.long))
 
     def _tensors(self, obs: dict[str, np.ndarray]) -> dict:
-        return {k: self.torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
 
     def policy(self, obs: dict[str, np.ndarray], env: BatchedNavEnv) -> np.ndarray:
-        torch = self.torch
         memory = self.memory
         with torch.inference_mode(), self.model.memoizing_in_view(self.memo):
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-                out = self.model(self._tensors(obs), memory.hidden, memory.prev_policy)
+            tensors = self._tensors(obs)
+            if self.lstm is None:
+                out = self.model(tensors, memory.hidden, memory.prev_policy)
+            else:
+                out = step_at_precision(self.model, self.lstm, tensors, memory.hidden, memory.prev_policy)
             return memory.advance(out).numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
@@ -84,12 +86,10 @@ class AdaptiveModelAgent(ModelAgent):
 
     def __init__(self, model, batch_size: int):
         super().__init__(model, batch_size)
-        from mapless.agent.acting import AdaptingActor
-
         self.adapter = AdaptingActor(model, batch_size)  # θ and φ fixed for the whole evaluation
         self.k = self.adapter.steps
         self.start_every = self.k
-        self.alive = self.torch.zeros(batch_size, dtype=self.torch.bool)
+        self.alive = torch.zeros(batch_size, dtype=torch.bool)
         self.output = None  # the last step's ModelOutput, for the inner loop's k-row buffer
 
     @property
@@ -98,7 +98,7 @@ class AdaptiveModelAgent(ModelAgent):
         return self.adapter.updates
 
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
-        index = self.torch.as_tensor(slots, dtype=self.torch.long)
+        index = torch.as_tensor(slots, dtype=torch.long)
         self.adapter.reset_slots(index)
         self.memory.reset(index)
         self.alive[index] = True
@@ -112,7 +112,7 @@ class AdaptiveModelAgent(ModelAgent):
         return memory.advance(self.output).detach().numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:
-        self.alive &= ~self.torch.from_numpy(step.terminated | step.truncated)
+        self.alive &= ~torch.from_numpy(step.terminated | step.truncated)
         self.adapter.observe(self.output, self.alive)
 
 

@@ -8,8 +8,9 @@
 * the observation encoders (GCNs, 1x1 convolutions, embeddings) run under ``torch.autocast`` to
   bfloat16, and their output returns to float32 (:func:`like` the LSTM state) before the LSTM.
 
-Parameters, optimizer state, LSTM gates, heads, the learned loss and the A3C loss stay float32, and
-evaluation runs in float32 unless asked otherwise (``mapless eval --bf16``).
+Parameters, optimizer state, LSTM gates, heads, the learned loss and the A3C loss stay float32.
+Evaluation runs in float32 unless asked otherwise; ``mapless eval --bf16`` means the same as here
+(a non-adaptive model's step at a precision: :func:`mapless.agent.acting.step_at_precision`).
 
 On the CPU, bfloat16 matrix products run through oneDNN, which compiles a kernel for every operand
 shape it meets (4-5 ms each on a Sapphire Rapids core, against 0.4 ms for the product itself at

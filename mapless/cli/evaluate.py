@@ -53,7 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--bf16",
         action="store_true",
-        help="bfloat16 autocast for non-adaptive models (faster GCNs on CPUs with BF16)",
+        help="non-adaptive models at training's precision bf16: bfloat16 encoders and LSTM products "
+        "(faster GCNs on CPUs with BF16)",
     )
     ev.add_argument(
         "--out",

@@ -19,14 +19,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.agent.acting import PolicyMemory, policy_probabilities, sample_actions, to_tensors
+from mapless.agent.acting import (
+    PolicyMemory,
+    policy_probabilities,
+    sample_actions,
+    step_at_precision,
+    to_tensors,
+)
 from mapless.agent.buffers import BufferPool
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.meta import InnerLoop, InnerLoopState
-from mapless.agent.precision import PRECISIONS, encoder_autocast, like
+from mapless.agent.precision import PRECISIONS
 from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
 from mapless.evaluate.metrics import spl
-from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel
 from mapless.models.memo import InViewMemo
 from mapless.sim.episode import Episode
 from mapless.sim.vector import BatchedNavEnv, BatchStep
@@ -103,13 +109,7 @@ class Actor:
             return self.inner.forward(self.state, obs, hidden, prev_policy)
         if self.lstm is None:
             return self.model(obs, hidden, prev_policy)
-        model, cell = self.model, self.model.lstm
-        with encoder_autocast(self.dtype, hidden[0].device):
-            x, critic_input = model.encode(model.describe(obs), hidden, prev_policy)
-        x, critic_input = like(x, hidden[0]), like(critic_input, hidden[0])
-        _, product = self.lstm.gates(x, hidden[0])
-        h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
-        return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
+        return step_at_precision(self.model, self.lstm, obs, hidden, prev_policy)
 
     def observe(self, output: ModelOutput, alive: Tensor) -> None:
         if self.inner is not None:
