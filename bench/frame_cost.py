@@ -11,7 +11,11 @@ for adaptive models) and then, model by model in turns (this machine's speed dri
   from the profiler's labels.
 
     python bench/frame_cost.py [--models a3c,mjolnir_o,cvmeta,mlp] [--threads 1,2] [--repeats 3]
-                               [--set KEY=VALUE ...] [--profile]
+                               [--set KEY=VALUE ...] [--profile] [--runs RUN_DIR,RUN_DIR]
+
+``--runs`` measures trained policies instead of fresh ones (each run folder's config and
+``final_model.pt``): a trained agent plays longer episodes, which changes an adaptive model's cost
+per frame (its replay's LSTM products cost per step, not per frame).
 """
 
 from __future__ import annotations
@@ -39,6 +43,26 @@ def build(model: str, overrides: list[str]):
     trainer = PPOTrainer(from_dict(TrainConfig, apply_overrides(data, overrides)), None)
     trainer._setup(None)
     assert isinstance(trainer.collector, SegmentCollector)
+    return trainer
+
+
+def build_trained(run_dir: Path):
+    """A PPO trainer with a run's configuration and final weights (one thread set by the caller)."""
+    import yaml
+
+    from mapless.checkpoint import load_file
+    from mapless.config import from_dict
+    from mapless.train.config import TrainConfig
+    from mapless.train.ppo import PPOTrainer
+
+    data = yaml.safe_load((run_dir / "config.yaml").read_text())
+    data.update(progress=False, threads=0)
+    config = from_dict(TrainConfig, data)
+    if config.algo != "ppo":
+        raise SystemExit(f"{run_dir}: trained with {config.algo}; this bench times the PPO recipe")
+    trainer = PPOTrainer(config, None)
+    trainer._setup(None)
+    trainer.model.load_state_dict(load_file(run_dir / "final_model.pt")["model"])
     return trainer
 
 
@@ -113,11 +137,18 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--profile", action="store_true", help="also print each model's replay operators")
+    parser.add_argument(
+        "--runs", help="comma-separated run folders: their trained policies instead of --models"
+    )
     args = parser.parse_args()
-    models = args.models.split(",")
+    runs = [Path(r) for r in args.runs.split(",")] if args.runs else []
+    models = [r.name for r in runs] or args.models.split(",")
     for threads in [int(t) for t in args.threads.split(",")]:
         torch.set_num_threads(threads)
-        trainers = {m: build(m, args.set) for m in models}
+        if runs:
+            trainers = {r.name: build_trained(r) for r in runs}
+        else:
+            trainers = {m: build(m, args.set) for m in models}
         acting = {m: [] for m in models}
         update = {m: [] for m in models}
         segments = {}
@@ -136,7 +167,7 @@ def main() -> None:
             a, u = sorted(acting[m])[len(acting[m]) // 2], sorted(update[m])[len(update[m]) // 2]
             # every frame is acted once and replayed (forward + backward) once per epoch
             best[m] = (a, u, 1.0 / (1.0 / a + trainers[m].config.ppo.epochs / u))
-        reference = best.get("mlp", (0, 0, 0))[2]
+        reference = next((best[m][2] for m in models if trainers[m].config.model.name == "mlp"), 0)
         for m in models:
             a, u, ppo = best[m]
             split = forward_split(trainers[m], segments[m])
