@@ -47,22 +47,20 @@ def build(model: str, overrides: list[str]):
 
 
 def build_trained(run_dir: Path):
-    """A PPO trainer with a run's configuration and final weights (one thread set by the caller)."""
-    import yaml
+    """A PPO trainer with a run's final weights and the configuration they were trained with."""
+    from dataclasses import replace
 
-    from mapless.checkpoint import load_file
-    from mapless.config import from_dict
+    from mapless import checkpoint as ckpt
     from mapless.train.config import TrainConfig
     from mapless.train.ppo import PPOTrainer
 
-    data = yaml.safe_load((run_dir / "config.yaml").read_text())
-    data.update(progress=False, threads=0)
-    config = from_dict(TrainConfig, data)
+    payload = ckpt.load_file(run_dir / ckpt.FINAL_MODEL_FILE)
+    config = replace(ckpt.config_of(payload, TrainConfig), progress=False, threads=0)
     if config.algo != "ppo":
         raise SystemExit(f"{run_dir}: trained with {config.algo}; this bench times the PPO recipe")
     trainer = PPOTrainer(config, None)
     trainer._setup(None)
-    trainer.model.load_state_dict(load_file(run_dir / "final_model.pt")["model"])
+    trainer.model.load_state_dict(payload["model"])
     return trainer
 
 
