@@ -12,12 +12,8 @@ from train_fixtures import fixture_library, tiny_config
 from mapless.agent.evaluation import ModelAgent
 from mapless.evaluate.runner import EvalSettings, run_episodes
 from mapless.models import registry
-from mapless.models.base import (
-    NUM_ACTIONS,
-    RECURRENT_CORE_ROLES,
-    RecurrentNavModel,
-    target_row,
-)
+from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel
+from mapless.models.layers import target_row
 from mapless.models.roles import ParameterRoles
 from mapless.train.ppo import PPOTrainer
 

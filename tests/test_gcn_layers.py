@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from mapless.models.base import gcn_layer, shared_gcn_term, shared_row_gcn_layer
+from mapless.models.layers import gcn_layer, shared_gcn_term, shared_row_gcn_layer
 
 C, B, FEATURES = 6, 4, 5
 

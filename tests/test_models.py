@@ -10,7 +10,7 @@ from mapless.config import ConfigError
 from mapless.errors import UnknownNameError
 from mapless.knowledge import normalize_adjacency, synthetic_knowledge
 from mapless.models import ModelConfig, build_model, context_vector, count_parameters, model_names
-from mapless.models.base import pointwise_conv, pointwise_conv_of_parts, tile
+from mapless.models.layers import pointwise_conv, pointwise_conv_of_parts, tile
 from mapless.models.synthetic import synthetic_observations
 
 ALL = ["random", "a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta", "mlp"]

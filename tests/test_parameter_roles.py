@@ -9,7 +9,8 @@ from torch import Tensor, nn
 from mapless.agent.adaptation import TestTimeAdaptation
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, registry
-from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel, target_row
+from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel
+from mapless.models.layers import target_row
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoleError, ParameterRoles
 from mapless.models.synthetic import synthetic_observations

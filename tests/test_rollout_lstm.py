@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from mapless.agent.rollout_lstm import RolloutLstm
-from mapless.models.base import lstm_state_from_gates, lstm_step
+from mapless.models.layers import lstm_state_from_gates, lstm_step
 
 
 def _rollout(cell, xs, lstm=None):

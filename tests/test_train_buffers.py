@@ -10,7 +10,7 @@ from torch import nn
 
 from mapless.agent.buffers import BufferPool
 from mapless.agent.rollout_lstm import RolloutLstm, accumulate_grad
-from mapless.models.base import lstm_state_from_gates
+from mapless.models.layers import lstm_state_from_gates
 from mapless.train.optim import SharedAdam
 
 

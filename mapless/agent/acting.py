@@ -10,7 +10,8 @@ from torch import Tensor
 
 from mapless.agent.precision import encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm
-from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel
+from mapless.models.layers import lstm_state_from_gates
 from mapless.sim.vector import OBSERVATION_KEYS
 
 

@@ -29,7 +29,8 @@ from torch.func import functional_call, vmap
 from mapless.agent.buffers import BufferPool
 from mapless.agent.precision import encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm
-from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel, lstm_state_from_gates
+from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel
+from mapless.models.layers import lstm_state_from_gates
 
 #: LSTM matrices (of :attr:`RecurrentNavModel.lstm`) whose per-episode updates are kept in low rank.
 LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
@@ -142,7 +143,7 @@ class FastWeightForward:
             )
         x, extra = like(encoded[0], hidden[0]), (like(encoded[1], hidden[0]) if len(encoded) > 1 else None)
 
-        # The LSTM cell of base.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
+        # The LSTM cell of layers.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
         h_prev, c_prev = hidden
         inputs, product = state.lstm.gates(x, h_prev)
         gates = product + self._param(state, "lstm.bias_ih") + self._param(state, "lstm.bias_hh")

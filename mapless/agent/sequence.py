@@ -19,7 +19,8 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.profiler import record_function
 
-from mapless.models.base import RecurrentNavModel, lstm_state_from_gates
+from mapless.models.base import RecurrentNavModel
+from mapless.models.layers import lstm_state_from_gates
 
 
 def replay_segment(

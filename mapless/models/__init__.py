@@ -1,6 +1,7 @@
 """Navigation models: every system of the paper's comparison, selected by name (see registry)."""
 
-from mapless.models.base import ModelConfig, ModelOutput, NavModel, context_vector, target_similarity
+from mapless.models.base import ModelConfig, ModelOutput, NavModel
+from mapless.models.layers import context_vector, target_similarity
 from mapless.models.registry import MODELS, build_model, count_parameters, model_names
 
 __all__ = [

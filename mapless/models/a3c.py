@@ -15,18 +15,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
-from mapless.models.base import (
-    EMBED,
-    GRID,
-    NUM_ACTIONS,
-    RECURRENT_CORE_ROLES,
-    ModelConfig,
-    RecurrentNavModel,
-    pointwise_conv,
-    target_context_input,
-    tile,
-)
+from mapless.models.base import EMBED, GRID, NUM_ACTIONS, RECURRENT_CORE_ROLES, ModelConfig, RecurrentNavModel
 from mapless.models.dropout import Dropout
+from mapless.models.layers import pointwise_conv, target_context_input, tile
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
 

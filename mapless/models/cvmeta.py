@@ -14,7 +14,7 @@ Per category j (the C graph nodes play the role of SAVN's 49 cells):
 Their concatenation (202 channels x C) goes through a pointwise ``Conv1d(202 -> fusion_channels)`` +
 ReLU + dropout, is flattened (32 x 101 = 3232 by default, close to SAVN's 3136) and enters
 LSTMCell(., 512). The concatenation is never formed: the convolution is computed part by part, the
-tiled vectors' parts once per episode (:func:`~mapless.models.base.pointwise_conv_of_parts`).
+tiled vectors' parts once per episode (:func:`~mapless.models.layers.pointwise_conv_of_parts`).
 Choices the paper leaves open are argued in docs/model.md.
 """
 
@@ -26,12 +26,9 @@ from torch import Tensor, nn
 from torch.profiler import record_function
 
 from mapless.knowledge import Knowledge
-from mapless.models.base import (
-    EMBED,
-    NUM_ACTIONS,
-    RECURRENT_CORE_ROLES,
-    ModelConfig,
-    RecurrentNavModel,
+from mapless.models.base import EMBED, NUM_ACTIONS, RECURRENT_CORE_ROLES, ModelConfig, RecurrentNavModel
+from mapless.models.dropout import Dropout
+from mapless.models.layers import (
     context_vector,
     gcn_layer,
     normalized_adjacency_parameter,
@@ -41,7 +38,6 @@ from mapless.models.base import (
     shared_row_gcn_layer,
     target_context_input,
 )
-from mapless.models.dropout import Dropout
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
 

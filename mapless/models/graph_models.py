@@ -16,12 +16,11 @@ from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
 from mapless.models.a3c import BASE_EMBEDDING, SAVN_EMBEDDING_ROLES, SavnEmbeddingMixin
-from mapless.models.base import (
-    ModelConfig,
-    RecurrentNavModel,
+from mapless.models.base import ModelConfig, RecurrentNavModel
+from mapless.models.initialisation import normalized_column_init
+from mapless.models.layers import (
     gcn_layer,
     normalized_adjacency_parameter,
-    normalized_column_init,
     shared_gcn_term,
     shared_row_gcn_layer,
 )

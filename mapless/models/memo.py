@@ -11,7 +11,7 @@ autograd history, so the gradient of every step that used a stored row flows int
 computation that produced it: the same gradient as without the memo, up to rounding.
 
 The same holds for the terms those computations share across rows, which depend on the parameters
-alone (the GCNs' first-layer term ``Â · F · W_Fᵀ`` of :func:`~mapless.models.base.shared_row_gcn_layer`):
+alone (the GCNs' first-layer term ``Â · F · W_Fᵀ`` of :func:`~mapless.models.layers.shared_row_gcn_layer`):
 :meth:`InViewMemo.constant` computes each once while the memo is in use, where every step would
 compute (and backpropagate) it again.
 """

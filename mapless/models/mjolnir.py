@@ -16,10 +16,8 @@ from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
 from mapless.models.a3c import BASE_EMBEDDING, SAVN_EMBEDDING_ROLES, SavnEmbeddingMixin
-from mapless.models.base import (
-    NUM_ACTIONS,
-    ModelConfig,
-    RecurrentNavModel,
+from mapless.models.base import NUM_ACTIONS, ModelConfig, RecurrentNavModel
+from mapless.models.layers import (
     context_vector,
     gcn_layer,
     normalized_adjacency_parameter,

@@ -14,14 +14,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapless.knowledge import Knowledge
-from mapless.models.base import (
-    NUM_ACTIONS,
-    RECURRENT_CORE_ROLES,
-    ModelConfig,
-    RecurrentNavModel,
-    target_row,
-    target_similarity,
-)
+from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, ModelConfig, RecurrentNavModel
+from mapless.models.layers import target_row, target_similarity
 from mapless.models.roles import ParameterRoles
 
 WIDTH = 256
