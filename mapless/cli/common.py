@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from mapless.config import load_config
 from mapless.scenes.categories import CATEGORY_SETS
@@ -13,18 +15,35 @@ from mapless.sim.config import SimConfig
 SCENES_HELP = "split name, split:room, or FloorPlan names (comma-separated)"
 
 
+def add_command(
+    subparsers: Any,
+    name: str,
+    handler: Callable[[argparse.Namespace], Any],
+    *,
+    sim: bool = False,
+    **parser_options: Any,
+) -> argparse.ArgumentParser:
+    """A sub-command that runs ``handler(args)``; ``sim`` gives it the simulator options
+    (:func:`add_sim_arguments`). ``parser_options`` go to ``add_parser`` (``help``, ``description``)."""
+    parser = subparsers.add_parser(name, **parser_options)
+    parser.set_defaults(func=handler)
+    if sim:
+        add_sim_arguments(parser)
+    return parser
+
+
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--sim-config", type=Path, help="YAML file with simulator settings (SimConfig fields)"
-    )
-    parser.add_argument(
+    """``--sim-config``, ``--sim KEY=VALUE`` and ``--cache-dir``, listed in their own help section."""
+    group = parser.add_argument_group("simulator")
+    group.add_argument("--sim-config", type=Path, help="YAML file with simulator settings (SimConfig fields)")
+    group.add_argument(
         "--sim",
         action="append",
         default=[],
         metavar="KEY=VALUE",
         help="override a simulator setting, e.g. visibility_distance=1.5",
     )
-    parser.add_argument(
+    group.add_argument(
         "--cache-dir",
         type=Path,
         help="cache root, the same as $MAPLESS_CACHE: scenes go in CACHE_DIR/scenes/ "

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import add_sim_arguments, sim_config_from
+from mapless.cli.common import add_command, sim_config_from
 from mapless.episodes import evalsets
 from mapless.errors import MaplessError
 
@@ -17,7 +17,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("episodes", help="make and inspect fixed evaluation episode sets")
     sub = parser.add_subparsers(dest="episodes_command", required=True)
 
-    make = sub.add_parser("make", help="(re)generate evaluation episode files deterministically from a seed")
+    make = add_command(
+        sub,
+        "make",
+        _make,
+        sim=True,
+        help="(re)generate evaluation episode files deterministically from a seed",
+    )
     make.add_argument(
         "--splits",
         default=",".join(evalsets.EVAL_SPLITS),
@@ -37,16 +43,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "variants from SOURCE (gen: generated arrangements; rearrange2023; or an arrangement file in the "
         "rearrangement dataset's format), e.g. --splits test --layouts gen:3 (docs/simulator.md)",
     )
-    add_sim_arguments(make)
-    make.set_defaults(func=_make)
 
-    show = sub.add_parser("show", help="summary of an episode set, or a picture of one episode")
+    show = add_command(
+        sub, "show", _show, sim=True, help="summary of an episode set, or a picture of one episode"
+    )
     show.add_argument("source", help="a split name (built-in set) or an episode file")
     show.add_argument("--target-set", default="mjolnir22")
     show.add_argument("--index", type=int, help="draw this episode (needs --out)")
     show.add_argument("--out", type=Path)
-    add_sim_arguments(show)
-    show.set_defaults(func=_show)
 
 
 def _make(args: argparse.Namespace) -> int:

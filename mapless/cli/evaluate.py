@@ -8,15 +8,17 @@ import shlex
 import sys
 from pathlib import Path
 
-from mapless.cli.common import positive_int
+from mapless.cli.common import add_command, positive_int
 from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
 from mapless.experiments.config import BUDGETS, EXPERIMENTS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    ev = subparsers.add_parser(
+    ev = add_command(
+        subparsers,
         "eval",
+        _eval,
         help="evaluate a trained model (run folder or model file), or 'random'/'oracle', on a fixed episode set",
         description="Writes <out>/<split>.json (metrics, bootstrap intervals, every episode) and <split>.md.",
     )
@@ -62,10 +64,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
         "reports/eval/<model> for random and oracle)",
     )
-    ev.set_defaults(func=_eval)
 
-    rep = subparsers.add_parser(
+    rep = add_command(
+        subparsers,
         "reproduce",
+        _reproduce,
         help="train, select, evaluate and report one of the paper's experiments",
         description="Experiments: table1, table2, table3, figure3, figures45, layout_shift. Writes "
         "reports/EXPERIMENT/.",
@@ -85,7 +88,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "under the 1.5 m rule and its report goes to reports/EXPERIMENT-reference",
     )
     rep.add_argument("--reports", type=Path, default=Path("reports"))
-    rep.set_defaults(func=_reproduce)
 
 
 def _eval(args: argparse.Namespace) -> int:

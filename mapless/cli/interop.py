@@ -16,24 +16,31 @@ import argparse
 import time
 from pathlib import Path
 
-from mapless.cli.common import SCENES_HELP, add_category_set_argument, add_sim_arguments, sim_config_from
+from mapless.cli.common import (
+    SCENES_HELP,
+    add_category_set_argument,
+    add_command,
+    sim_config_from,
+)
 from mapless.errors import MaplessError
 from mapless.offline import offline_library
 from mapless.offline.format import FORMATS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    export = subparsers.add_parser("export", help="write built-in scenes as SAVN/MJOLNIR offline folders")
+    export = add_command(
+        subparsers, "export", _export, sim=True, help="write built-in scenes as SAVN/MJOLNIR offline folders"
+    )
     export.add_argument("scenes", help=SCENES_HELP)
     export.add_argument("--format", choices=FORMATS, default="savn")
     export.add_argument("--out", type=Path, required=True, help="offline data root (one folder per scene)")
     export.add_argument("--no-compression", action="store_true", help="write the feature HDF5 uncompressed")
-    add_sim_arguments(export)
-    export.set_defaults(func=_export)
 
     thor = subparsers.add_parser("thor", help="live AI2-THOR backend (needs the mapless[thor] extra)")
     thor_sub = thor.add_subparsers(dest="thor_command", required=True)
-    scrape = thor_sub.add_parser("scrape", help="breadth-first search over poses into offline folders")
+    scrape = add_command(
+        thor_sub, "scrape", _scrape, help="breadth-first search over poses into offline folders"
+    )
     scrape.add_argument("scenes", help=SCENES_HELP)
     scrape.add_argument("--out", type=Path, required=True)
     scrape.add_argument("--format", choices=FORMATS, default="savn")
@@ -45,19 +52,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     scrape.add_argument("--commit-id", help="pin the AI2-THOR build")
     scrape.add_argument("--local-executable-path", help="use an already downloaded AI2-THOR build")
     scrape.add_argument("--images", action="store_true", help="also write images.hdf5 with the RGB frames")
-    scrape.set_defaults(func=_scrape)
 
     interop = subparsers.add_parser("interop", help="check offline folders, import/export episode pickles")
     sub = interop.add_subparsers(dest="interop_command", required=True)
-    check = sub.add_parser("check", help="load offline scene folders and summarise them")
+    check = add_command(sub, "check", _check, help="load offline scene folders and summarise them")
     check.add_argument("folders", nargs="+", type=Path, help="scene folders, or roots holding them")
     add_category_set_argument(check)
     check.add_argument("--visible-file", default="visible_object_map.json")
     check.add_argument("--no-features", action="store_true", help="skip reading the feature HDF5")
-    check.set_defaults(func=_check)
 
-    imp = sub.add_parser(
+    imp = add_command(
+        sub,
         "episodes-import",
+        _import_episodes,
+        sim=True,
         help="map a SAVN/MJOLNIR/HOZ episode pickle onto the built-in (or an offline root's) scenes",
     )
     imp.add_argument("file", type=Path)
@@ -72,11 +80,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="map onto the scenes of this SAVN/MJOLNIR offline root instead of the built-in ones "
         "(for evaluation with `mapless eval --offline-dir`: object ids then match the root's)",
     )
-    add_sim_arguments(imp)
-    imp.set_defaults(func=_import_episodes)
 
-    exp = sub.add_parser(
+    exp = add_command(
+        sub,
         "episodes-export",
+        _export_episodes,
+        sim=True,
         help="write a mapless episode set as SAVN/MJOLNIR pickles, one per room type",
         description="Writes OUT/<room>_<test|val|test_val>.pkl, the layout the references read (or one "
         "OUT.pkl with every room). task_data lists only the target ids of the scenes' visible-object "
@@ -107,8 +116,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     exp.add_argument(
         "--glove", type=Path, help="HDF5 with one GloVe vector per type (e.g. SAVN's glove_map300d.hdf5)"
     )
-    add_sim_arguments(exp)
-    exp.set_defaults(func=_export_episodes)
 
 
 def _export(args: argparse.Namespace) -> int:

@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import argparse
 
-from mapless.cli.common import add_category_set_argument
+from mapless.cli.common import add_category_set_argument, add_command
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("models", help="registered navigation models")
     sub = parser.add_subparsers(dest="models_command", required=True)
-    listing = sub.add_parser("list", help="model names with parameter counts")
+    listing = add_command(sub, "list", list_models, help="model names with parameter counts")
     add_category_set_argument(listing)
     listing.add_argument(
         "--reference",
         action="store_true",
         help="reference-sized inputs: 512-channel ResNet-18 maps and the originals' dead modules",
     )
-    listing.set_defaults(func=list_models)
 
 
 def list_models(args: argparse.Namespace) -> int:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import SCENES_HELP, add_sim_arguments, parse_pose, sim_config_from
+from mapless.cli.common import SCENES_HELP, add_command, parse_pose, sim_config_from
 from mapless.errors import UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
 from mapless.scenes.categories import targets
@@ -20,18 +20,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("scenes", help="build, list, inspect and check the built-in scenes")
     sub = parser.add_subparsers(dest="scenes_command", required=True)
 
-    build = sub.add_parser("build", help="precompute and cache scenes (all 120 by default)")
+    build = add_command(
+        sub, "build", _build, sim=True, help="precompute and cache scenes (all 120 by default)"
+    )
     build.add_argument("scenes", nargs="?", default="all", help=SCENES_HELP)
     build.add_argument("--workers", type=int, default=2)
     build.add_argument("--rebuild", action="store_true", help="ignore existing cache entries")
-    add_sim_arguments(build)
-    build.set_defaults(func=_build)
 
-    listing = sub.add_parser("list", help="scenes with room type, split, object and grid counts")
+    listing = add_command(sub, "list", _list, help="scenes with room type, split, object and grid counts")
     listing.add_argument("scenes", nargs="?", default="all")
-    listing.set_defaults(func=_list)
 
-    show = sub.add_parser("show", help="top-down map and egocentric view of a scene as a PNG")
+    show = add_command(
+        sub, "show", _show, sim=True, help="top-down map and egocentric view of a scene as a PNG"
+    )
     show.add_argument("scene")
     show.add_argument(
         "--pose",
@@ -40,11 +41,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     show.add_argument("--target", action="append", default=[], help="object type to highlight")
     show.add_argument("--out", type=Path, required=True)
-    add_sim_arguments(show)
-    show.set_defaults(func=_show)
 
-    check = sub.add_parser(
+    check = add_command(
+        sub,
         "check",
+        _check,
+        sim=True,
         help="per scene: poses, pose-graph components, reachable targets, share of poses seeing an "
         "object; then every target instance no pose can see, under each protocol's success rule",
     )
@@ -56,22 +58,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="protocols whose success rule the never-visible targets are listed under (the table uses the "
         "first); each rule has its own scene cache, built on first use",
     )
-    add_sim_arguments(check)
-    check.set_defaults(func=_check)
 
-    variants = sub.add_parser(
+    variants = add_command(
+        sub,
         "variants",
+        _variants,
         help='facts about an arrangement source against the default layouts (docs/simulator.md, "Scene variants")',
     )
     variants.add_argument(
         "source", nargs="?", default="rearrange2023", help="rearrange2023 or an arrangement file"
     )
     variants.add_argument("--phase", choices=("target", "start"), default="target")
-    variants.set_defaults(func=_variants)
 
-    target_parser = sub.add_parser("targets", help="how many scenes of each split contain each target")
+    target_parser = add_command(
+        sub, "targets", _targets, help="how many scenes of each split contain each target"
+    )
     target_parser.add_argument("--target-set", default="mjolnir22")
-    target_parser.set_defaults(func=_targets)
 
 
 def _build(args: argparse.Namespace) -> int:

@@ -7,13 +7,16 @@ import json
 import sys
 from pathlib import Path
 
+from mapless.cli.common import add_command
 from mapless.config import load_config
 from mapless.episodes.protocols import PROTOCOLS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
+    parser = add_command(
+        subparsers,
         "train",
+        _train,
         help="train a model (batched or async A3C / meta-RL); writes a run folder",
         description="Train a model. Under torchrun every rank runs this command (docs/training.md).",
     )
@@ -44,7 +47,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train for an evaluation protocol's success rule: reference = within 1.5 m, as the SAVN/MJOLNIR "
         "data (--set env.sim.visibility_distance=1.5); standard and paper = 1.0 m, the default",
     )
-    parser.set_defaults(func=_train)
 
 
 def _train(args: argparse.Namespace) -> int:
