@@ -196,4 +196,6 @@ eval:
     assert ("a3c − random (default)", "shifted") in focus
     diff = payload["variants_minus_default"][1]["success"]
     assert diff["ci_low"] <= diff["mean"] <= diff["ci_high"]
-    assert "does its advantage grow or vanish" in (reports / "layout_shift" / "layout_shift.md").read_text()
+    report = (reports / "layout_shift" / "layout_shift.md").read_text()
+    assert "does its advantage grow or vanish" in report
+    assert "| model | trained on | tested on | SR |" in report and "| a3c | variants | shifted | " in report

@@ -171,6 +171,16 @@ def test_report_cells_and_table():
     assert "| cvmeta | 75.0" in table and "SR L≥5" in table
 
 
+def test_a_label_in_parts_fills_one_column_each_and_must_match_them():
+    record = model_record("a3c | variants | shifted", [[ep(i, i < 3, 8, 4) for i in range(4)]])
+    header, _, row = model_table([record], label=("model", "trained on", "tested on")).splitlines()
+    assert header.split(" | ")[:4] == ["| model", "trained on", "tested on", "SR"]
+    assert row.startswith("| a3c | variants | shifted | 75.0 [")
+    assert header.count("|") == row.count("|")
+    with pytest.raises(ValueError, match="3 parts, the table 1"):
+        model_table([record])
+
+
 def test_difference_cells_are_signed_points_for_rates_and_steps_for_lengths():
     rate = {"mean": -0.07, "ci_low": -0.112, "ci_high": 0.0291, "seeds_a": 3, "seeds_b": 3, "episodes": 400}
     assert format_difference("success", rate) == "-7.0 [-11.2, +2.9]"

@@ -126,12 +126,24 @@ def _room_estimates(per_seed: Sequence[Sequence[EpisodeResult]]) -> dict[str, di
     return out
 
 
-def model_table(records: Sequence[dict], columns: Sequence[str] = MAIN_COLUMNS, interval: bool = True) -> str:
-    """One row per model record (``model_record``)."""
-    header = ["model", *(COLUMNS[c][0] for c in columns)]
+def model_table(
+    records: Sequence[dict],
+    columns: Sequence[str] = MAIN_COLUMNS,
+    interval: bool = True,
+    label: Sequence[str] = ("model",),
+) -> str:
+    """One row per model record (``model_record``). A record labelled in parts,
+    ``"a3c | variants | shifted"``, fills the ``label`` columns one part each (a markdown row with
+    more cells than its header loses the extra ones, so the parts must match ``label``)."""
+    header = [*label, *(COLUMNS[c][0] for c in columns)]
     rows = []
     for rec in records:
-        rows.append([rec["model"], *(_cell(rec["estimates"], c, interval) for c in columns)])
+        parts = rec["model"].split(" | ")
+        if len(parts) != len(label):
+            raise ValueError(
+                f"model label {rec['model']!r} has {len(parts)} parts, the table {len(label)}: {list(label)}"
+            )
+        rows.append([*parts, *(_cell(rec["estimates"], c, interval) for c in columns)])
     return markdown(header, rows)
 
 

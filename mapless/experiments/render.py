@@ -206,16 +206,16 @@ def figures45(experiment: str, record: Figures45, out: Path, command: str) -> Re
 
 
 def layout_shift(experiment: str, record: LayoutShift, out: Path, command: str) -> Rendered:
-    """Rows ``model | trained on | tested on``; then the paired differences."""
+    """A row per model, training arrangements and test set; then the paired differences."""
     config = record.setting.config
     shift = config.eval.shift_file or config.eval.shift_layouts
     lines = _header(record.setting, "Layout shift: the test floor plans under other arrangements", command)
     lines += [
         f"Shifted set: {record.shifted_episodes} episodes on the test floor plans under `{shift}`; "
         f"variant training: `env.layouts` = {config.variant_layouts}.",
-        "Rows `model | trained on | tested on`; selection on val under the default arrangements.",
+        "Selection on val under the default arrangements.",
         "",
-        model_table(record.models),
+        model_table(record.models, label=("model", "trained on", "tested on")),
         "",
         "Trained on variants minus trained on default arrangements, in points, paired over the same "
         "episodes (and seeds):",
