@@ -16,7 +16,7 @@ SCENES_HELP = "split name, split:room, or FloorPlan names (comma-separated)"
 
 
 def add_command(
-    subparsers: Any,
+    subparsers: argparse._SubParsersAction,
     name: str,
     handler: Callable[[argparse.Namespace], Any],
     *,
