@@ -16,12 +16,7 @@ import argparse
 import time
 from pathlib import Path
 
-from mapless.cli.common import (
-    SCENES_HELP,
-    add_category_set_argument,
-    add_command,
-    sim_config_from,
-)
+from mapless.cli.common import SCENES_HELP, add_category_set_argument, add_command, sim_config_from
 from mapless.errors import MaplessError
 from mapless.offline import offline_library
 from mapless.offline.format import FORMATS

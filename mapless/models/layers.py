@@ -12,6 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mapless.knowledge import normalize_adjacency
+
 
 def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
     """``nn.LSTMCell`` math (gate order i, f, g, o) written out so that it works under vmap with
@@ -148,6 +150,4 @@ def context_vector(obs: dict[str, Tensor], category_glove: Tensor) -> Tensor:
 
 def normalized_adjacency_parameter(adjacency) -> nn.Parameter:
     """The references store the normalised adjacency itself as a trainable parameter."""
-    from mapless.knowledge import normalize_adjacency
-
     return nn.Parameter(torch.as_tensor(normalize_adjacency(adjacency)))
