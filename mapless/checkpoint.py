@@ -23,6 +23,7 @@ whoever wants the whole config names its type (:func:`config_of`), so nothing he
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 import shutil
 from pathlib import Path
@@ -38,6 +39,7 @@ from mapless.models import ModelConfig, NavModel, build_model
 C = TypeVar("C")
 
 CONFIG_FILE = "config.yaml"
+METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_FILE = "checkpoint.pt"
 FINAL_MODEL_FILE = "final_model.pt"
 SNAPSHOT_DIR = "checkpoints"
@@ -220,6 +222,28 @@ def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
         if match:
             found.append((int(match.group(1)), path))
     return sorted(found)
+
+
+def training_clock(run_dir: str | Path) -> tuple[list[int], list[float]]:
+    """``(frames, training seconds)`` at every record of a run's :data:`METRICS_FILE`; empty lists
+    when it has none. Each record holds its interval's frames/s, so the seconds add up the intervals
+    timed at their own rate: the pause before a resumed run is left out. Lines that do not parse (a
+    record torn by a kill) are passed over."""
+    path = Path(run_dir) / METRICS_FILE
+    frames, seconds = [], []
+    last_frames, clock = 0, 0.0
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        try:
+            record = json.loads(line)
+            now, rate = int(record["frames"]), float(record["perf/frames_per_s"])
+        except (ValueError, KeyError, TypeError):
+            continue
+        if rate > 0:
+            clock += max(now - last_frames, 0) / rate
+        last_frames = now
+        frames.append(now)
+        seconds.append(clock)
+    return frames, seconds
 
 
 def resolve_model_file(path: str | Path) -> Path:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from mapless.cli import main
 from mapless.episodes import evalsets
@@ -109,6 +110,14 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     # Snapshots at 8 and 16 episodes (the final model is the 16-episode snapshot): both scored on val.
     assert [c["episodes"] for c in selection["candidates"]] == [8, 16]
     assert selection["chosen"] in [c["path"] for c in selection["candidates"]]
+    # Each candidate says how far training had got: its snapshot's frames and, from the training
+    # log (a record every 8 episodes), the training minutes to that point; the report plots them.
+    for c in selection["candidates"]:
+        assert c["frames"] == torch.load(c["path"], weights_only=True)["counters"]["frames"] > 0
+    first, last = selection["candidates"]
+    assert 0 < first["minutes"] < last["minutes"] < 5
+    assert (reports / "table1" / "table1_validation.png").stat().st_size > 10_000
+    assert "![validation success per snapshot](table1_validation.png)" in md
     assert len(a3c["episodes"][0]) == 6 and {e["scene"] for e in a3c["episodes"][0]} == {"FloorPlan26"}
     run_dir = Path(a3c["runs"][0]["run_dir"])
     assert (run_dir / "eval" / "val_model_0000000008.json").is_file()

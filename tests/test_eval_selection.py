@@ -11,9 +11,11 @@ from eval_fixtures import fixture_episodes
 from train_fixtures import fixture_library as training_scenes
 from train_fixtures import tiny_config
 
+from mapless.checkpoint import training_clock
 from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
+from mapless.evaluate.figures import validation_figure
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
 from mapless.evaluate.selection import best_index, cached_evaluate, load_episodes
 from mapless.scenes.catalogue import room_type_of, split_of
@@ -30,6 +32,32 @@ def test_best_by_success_then_spl_then_earliest():
     ]
     assert best_index(scores) == 2
     assert best_index(scores[:2]) == 1
+
+
+def test_training_clock_adds_up_the_logged_intervals_and_leaves_out_a_resume_pause(tmp_path):
+    records = [
+        {"frames": 100, "perf/frames_per_s": 50.0, "time": 1000.0},  # 2 s
+        {"frames": 300, "perf/frames_per_s": 100.0, "time": 1002.0},  # +2 s
+        # killed, resumed an hour later: the wall clock jumps, the training clock does not
+        {"frames": 400, "perf/frames_per_s": 50.0, "time": 4600.0},  # +2 s
+    ]
+    lines = [json.dumps(r) for r in records]
+    lines.insert(2, '{"frames": 350, "perf/fra')  # a record torn by the kill
+    (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    assert training_clock(tmp_path) == ([100, 300, 400], [2.0, 4.0, 6.0])
+    assert training_clock(tmp_path / "no-such-run") == ([], [])
+
+
+def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path):
+    old_record = {"success": 0.3, "episodes": 8}  # made before candidates kept their frames
+    assert not validation_figure({"a3c": [[old_record]]}, tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()
+    seed = [
+        {"success": 0.2, "frames": 1000, "minutes": 1.0},
+        {"success": 0.4, "frames": 2000, "minutes": None, "chosen": True},  # beyond the log
+    ]
+    assert validation_figure({"a3c": [seed, seed], "cvmeta": [[old_record]]}, tmp_path / "v.png")
+    assert (tmp_path / "v.png").stat().st_size > 10_000
 
 
 def test_paper_protocol_is_labelled():

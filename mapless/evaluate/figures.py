@@ -1,5 +1,6 @@
 """Figures of the paper: ratio-of-exploration curves (Figure 3) and top-down trajectories of several
-models on the same episode (Figure 4), a failure case (Figure 5), and an optional egocentric GIF."""
+models on the same episode (Figure 4), a failure case (Figure 5), and an optional egocentric GIF;
+beside Table 1, validation success against training frames and minutes."""
 
 from __future__ import annotations
 
@@ -61,6 +62,50 @@ def exploration_figure(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return curves
+
+
+def validation_figure(curves: Mapping[str, Sequence[Sequence[Mapping]]], path: Path) -> bool:
+    """Validation SR at every snapshot a selection scored, against training frames (left) and
+    training minutes (right): one colour per model, one line per seed, the chosen snapshot ringed.
+
+    ``curves``: model -> per seed, the selection's candidates (``frames``, ``minutes`` (None when the
+    run's log did not reach it), ``success``, and ``chosen`` on the selected one). Returns False, and
+    writes nothing, when no candidate knows its frames (records made before snapshots kept them).
+    """
+    seeds = [
+        (i, label, [c for c in candidates if c.get("frames", -1) >= 0])
+        for i, (label, per_seed) in enumerate(curves.items())
+        for candidates in per_seed
+    ]
+    if not any(points for _, _, points in seeds):
+        return False
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    labelled = set()
+    for i, label, points in seeds:
+        colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
+        for ax, key, scale in ((axes[0], "frames", 1e-3), (axes[1], "minutes", 1.0)):
+            kept = [c for c in points if c.get(key) is not None]
+            x = [c[key] * scale for c in kept]
+            ax.plot(x, [100 * c["success"] for c in kept], "o-", color=colour, markersize=3.5,
+                    label=None if (label, key) in labelled else label)  # fmt: skip
+            labelled.add((label, key))
+            ax.plot([c[key] * scale for c in kept if c.get("chosen")],
+                    [100 * c["success"] for c in kept if c.get("chosen")],
+                    "o", markersize=11, markerfacecolor="none", markeredgecolor=colour)  # fmt: skip
+    axes[0].set_xlabel("training frames (thousands)")
+    axes[1].set_xlabel("training minutes")
+    axes[0].set_ylabel("validation SR (%)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.set_ylim(bottom=0)
+    axes[0].legend()
+    fig.suptitle("Validation success at every snapshot (ringed: the one selected and reported)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
 
 
 def _path_xy(library: SceneLibrary, result: EpisodeResult) -> np.ndarray:

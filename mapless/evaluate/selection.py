@@ -15,6 +15,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
+from mapless.checkpoint import FINAL_MODEL_FILE, load_file, snapshots, training_clock
 from mapless.episodes import evalsets
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
@@ -86,8 +89,6 @@ def episodes_digest(episodes: Sequence[Episode]) -> str:
 def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
     """``(training episodes, model file)`` of every snapshot of a run, plus its final model when it
     is not already a snapshot of the same episode count."""
-    from mapless.checkpoint import FINAL_MODEL_FILE, load_file, snapshots
-
     run_dir = Path(run_dir)
     found = snapshots(run_dir)
     final = run_dir / FINAL_MODEL_FILE
@@ -98,6 +99,17 @@ def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
     if not found:
         raise MaplessError(f"run folder {run_dir} holds no model snapshot or final model")
     return sorted(found)
+
+
+def _training_progress(model_file: Path, clock: tuple[list[int], list[float]]) -> dict:
+    """How far training had got at a snapshot: its frames and, from the run's log, its training
+    minutes (None without a log that reaches it), for validation curves against frames and time."""
+    frames = int(load_file(model_file).get("counters", {}).get("frames", -1))
+    logged_frames, seconds = clock
+    minutes = None
+    if frames >= 0 and logged_frames and logged_frames[-1] >= frames:
+        minutes = float(np.interp(frames, [0, *logged_frames], [0.0, *seconds])) / 60
+    return {"frames": frames, "minutes": minutes}
 
 
 def best_index(metrics: Sequence[dict]) -> int:
@@ -182,6 +194,7 @@ def select_and_report(
         label = f"{protocol} protocol: selected on {p.select_split}, reported once on {report_name}; success within {p.visibility_distance} m"
     run_dir = Path(run_dir)
     scores, runs = [], []
+    clock = training_clock(run_dir)
     for episodes_done, path in candidates(run_dir):
         spec = AgentSpec(checkpoint=str(path))
         cache = run_dir / "eval" / f"{select_split}_{path.stem}.json"
@@ -192,6 +205,7 @@ def select_and_report(
                 "episodes": episodes_done,
                 "path": str(path),
                 **{k: m[k] for k in ("success", "spl", "l5_success", "l5_spl")},
+                **_training_progress(path, clock),
             }
         )
         runs.append(run)

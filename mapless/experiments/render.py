@@ -65,10 +65,33 @@ def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered
     records = record.models
     lines = _header(record.setting, "Table 1: navigation results on unseen scenes", command)
     lines += [model_table(records), "", *_focus_differences(record.setting.config.focus, records)]
+    lines += _validation_curves(records, out / f"{experiment}_validation.png")
     lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     for rec in records:
         lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
     return _payload(experiment, record.setting, models=records), lines
+
+
+def _validation_curves(records: list[dict], path: Path) -> list[str]:
+    """The figure of every trained model's snapshots on the selection episodes, if they were selected."""
+    from mapless.evaluate.figures import validation_figure
+
+    curves = {}
+    for rec in records:
+        selections = [run["selection"] for run in rec.get("runs", []) if "selection" in run]
+        if selections:
+            curves[rec["model"]] = [
+                [{**c, "chosen": c["path"] == sel["chosen"]} for c in sel["candidates"]] for sel in selections
+            ]
+    if not curves or not validation_figure(curves, path):
+        return []
+    return [
+        "How each run learned: success on the selection episodes at every snapshot, against training "
+        "frames and minutes (one line per seed; ringed: the snapshot reported above).",
+        "",
+        f"![validation success per snapshot]({path.name})",
+        "",
+    ]
 
 
 def _focus_differences(focus: str, records: list[dict]) -> list[str]:

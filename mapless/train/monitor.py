@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from mapless.checkpoint import METRICS_FILE
 from mapless.files import write_text
 
 RUNNING_WINDOW = 1000
-METRICS_FILE = "metrics.jsonl"
 
 
 class RunMonitor:
