@@ -227,22 +227,24 @@ def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
 def training_clock(run_dir: str | Path) -> tuple[list[int], list[float]]:
     """``(frames, training seconds)`` at every record of a run's :data:`METRICS_FILE`; empty lists
     when it has none. Each record holds its interval's frames/s, so the seconds add up the intervals
-    timed at their own rate: the pause before a resumed run is left out. Lines that do not parse (a
-    record torn by a kill) are passed over."""
+    timed at their own rate: the pause before a resumed run is left out, and so are the records a
+    killed run wrote after its last checkpoint, whose work the resumed run did again (frames go
+    back). Lines that do not parse (a record torn by a kill) are passed over."""
     path = Path(run_dir) / METRICS_FILE
-    frames, seconds = [], []
-    last_frames, clock = 0, 0.0
+    frames: list[int] = []
+    seconds: list[float] = []
     for line in path.read_text().splitlines() if path.is_file() else []:
         try:
             record = json.loads(line)
             now, rate = int(record["frames"]), float(record["perf/frames_per_s"])
         except (ValueError, KeyError, TypeError):
             continue
-        if rate > 0:
-            clock += max(now - last_frames, 0) / rate
-        last_frames = now
+        while frames and frames[-1] >= now:
+            frames.pop()
+            seconds.pop()
+        interval = (now - frames[-1] if frames else now) / rate if rate > 0 else 0.0
+        seconds.append((seconds[-1] if seconds else 0.0) + interval)
         frames.append(now)
-        seconds.append(clock)
     return frames, seconds
 
 

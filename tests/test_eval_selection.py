@@ -38,13 +38,15 @@ def test_training_clock_adds_up_the_logged_intervals_and_leaves_out_a_resume_pau
     records = [
         {"frames": 100, "perf/frames_per_s": 50.0, "time": 1000.0},  # 2 s
         {"frames": 300, "perf/frames_per_s": 100.0, "time": 1002.0},  # +2 s
-        # killed, resumed an hour later: the wall clock jumps, the training clock does not
-        {"frames": 400, "perf/frames_per_s": 50.0, "time": 4600.0},  # +2 s
+        {"frames": 500, "perf/frames_per_s": 100.0, "time": 1004.0},  # after the last checkpoint
+        # killed, resumed an hour later from the checkpoint at 300 frames: the wall clock jumps, the
+        # training clock does not, and the record at 500 describes work done again
+        {"frames": 450, "perf/frames_per_s": 75.0, "time": 4600.0},  # +2 s after the 300 record
     ]
     lines = [json.dumps(r) for r in records]
-    lines.insert(2, '{"frames": 350, "perf/fra')  # a record torn by the kill
+    lines.insert(3, '{"frames": 550, "perf/fra')  # a record torn by the kill
     (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
-    assert training_clock(tmp_path) == ([100, 300, 400], [2.0, 4.0, 6.0])
+    assert training_clock(tmp_path) == ([100, 300, 450], [2.0, 4.0, 6.0])
     assert training_clock(tmp_path / "no-such-run") == ([], [])
 
 
