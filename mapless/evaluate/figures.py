@@ -81,18 +81,20 @@ def validation_figure(curves: Mapping[str, Sequence[Sequence[Mapping]]], path: P
         return False
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    labelled = set()
+    labelled = set()  # one legend entry per model, however many seeds
     for i, label, points in seeds:
         colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
         for ax, key, scale in ((axes[0], "frames", 1e-3), (axes[1], "minutes", 1.0)):
-            kept = [c for c in points if c.get(key) is not None]
-            x = [c[key] * scale for c in kept]
-            ax.plot(x, [100 * c["success"] for c in kept], "o-", color=colour, markersize=3.5,
-                    label=None if (label, key) in labelled else label)  # fmt: skip
-            labelled.add((label, key))
-            ax.plot([c[key] * scale for c in kept if c.get("chosen")],
-                    [100 * c["success"] for c in kept if c.get("chosen")],
-                    "o", markersize=11, markerfacecolor="none", markeredgecolor=colour)  # fmt: skip
+            kept = [
+                (c[key] * scale, 100 * c["success"], c.get("chosen"))
+                for c in points
+                if c.get(key) is not None
+            ]
+            ax.plot([x for x, _, _ in kept], [y for _, y, _ in kept], "o-", color=colour, markersize=3.5,
+                    label=None if label in labelled else label)  # fmt: skip
+            for x, y, _ in filter(lambda point: point[2], kept):  # the selected snapshot, ringed
+                ax.plot(x, y, "o", markersize=11, markerfacecolor="none", markeredgecolor=colour)
+        labelled.add(label)
     axes[0].set_xlabel("training frames (thousands)")
     axes[1].set_xlabel("training minutes")
     axes[0].set_ylabel("validation SR (%)")
