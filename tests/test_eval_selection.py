@@ -51,14 +51,17 @@ def test_training_clock_adds_up_the_logged_intervals_and_leaves_out_a_resume_pau
 
 
 def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path):
-    old_record = {"success": 0.3, "episodes": 8}  # made before candidates kept their frames
-    assert not validation_figure({"a3c": [[old_record]]}, tmp_path / "none.png")
+    old_record = {"chosen": "s8.pt", "candidates": [{"path": "s8.pt", "success": 0.3, "episodes": 8}]}
+    assert not validation_figure({"a3c": [old_record]}, tmp_path / "none.png")  # made before frames were kept
     assert not (tmp_path / "none.png").exists()
-    seed = [
-        {"success": 0.2, "frames": 1000, "minutes": 1.0},
-        {"success": 0.4, "frames": 2000, "minutes": None, "chosen": True},  # beyond the log
-    ]
-    assert validation_figure({"a3c": [seed, seed], "cvmeta": [[old_record]]}, tmp_path / "v.png")
+    seed = {
+        "chosen": "s2.pt",
+        "candidates": [
+            {"path": "s1.pt", "success": 0.2, "frames": 1000, "minutes": 1.0},
+            {"path": "s2.pt", "success": 0.4, "frames": 2000, "minutes": None},  # beyond the log
+        ],
+    }
+    assert validation_figure({"a3c": [seed, seed], "cvmeta": [old_record]}, tmp_path / "v.png")
     assert (tmp_path / "v.png").stat().st_size > 10_000
 
 

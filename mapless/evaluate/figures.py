@@ -64,29 +64,31 @@ def exploration_figure(
     return curves
 
 
-def validation_figure(curves: Mapping[str, Sequence[Sequence[Mapping]]], path: Path) -> bool:
+def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -> bool:
     """Validation SR at every snapshot a selection scored, against training frames (left) and
     training minutes (right): one colour per model, one line per seed, the chosen snapshot ringed.
 
-    ``curves``: model -> per seed, the selection's candidates (``frames``, ``minutes`` (None when the
-    run's log did not reach it), ``success``, and ``chosen`` on the selected one). Returns False, and
-    writes nothing, when no candidate knows its frames (records made before snapshots kept them).
+    ``selections``: model -> per seed, its selection as the reports keep it
+    (:meth:`~mapless.evaluate.selection.Selection.summary`: ``chosen``, and ``candidates`` with
+    ``path``, ``success``, ``frames`` and ``minutes``, None when the run's log did not reach it).
+    Returns False, and writes nothing, when no candidate knows its frames (records made before
+    snapshots kept them).
     """
     seeds = [
-        (i, label, [c for c in candidates if c.get("frames", -1) >= 0])
-        for i, (label, per_seed) in enumerate(curves.items())
-        for candidates in per_seed
+        (i, label, sel["chosen"], [c for c in sel["candidates"] if c.get("frames", -1) >= 0])
+        for i, (label, per_seed) in enumerate(selections.items())
+        for sel in per_seed
     ]
-    if not any(points for _, _, points in seeds):
+    if not any(points for *_, points in seeds):
         return False
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     labelled = set()  # one legend entry per model, however many seeds
-    for i, label, points in seeds:
+    for i, label, chosen, points in seeds:
         colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
         for ax, key, scale in ((axes[0], "frames", 1e-3), (axes[1], "minutes", 1.0)):
             kept = [
-                (c[key] * scale, 100 * c["success"], c.get("chosen"))
+                (c[key] * scale, 100 * c["success"], c["path"] == chosen)
                 for c in points
                 if c.get(key) is not None
             ]

@@ -76,14 +76,12 @@ def _validation_curves(records: list[dict], path: Path) -> list[str]:
     """The figure of every trained model's snapshots on the selection episodes, if they were selected."""
     from mapless.evaluate.figures import validation_figure
 
-    curves = {}
-    for rec in records:
-        selections = [run["selection"] for run in rec.get("runs", []) if "selection" in run]
-        if selections:
-            curves[rec["model"]] = [
-                [{**c, "chosen": c["path"] == sel["chosen"]} for c in sel["candidates"]] for sel in selections
-            ]
-    if not curves or not validation_figure(curves, path):
+    selections = {
+        rec["model"]: [run["selection"] for run in rec["runs"] if "selection" in run]
+        for rec in records
+        if any("selection" in run for run in rec.get("runs", []))
+    }
+    if not selections or not validation_figure(selections, path):
         return []
     return [
         "How each run learned: success on the selection episodes at every snapshot, against training "
