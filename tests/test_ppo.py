@@ -4,6 +4,7 @@ exact resume of a PPO run."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -202,6 +203,15 @@ def test_ppo_run_resumes_exactly(tmp_path: Path, model: str) -> None:
 def test_impossible_ppo_settings_are_clear_errors(override: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         tiny_config("a3c", "algo=ppo", "ppo.envs=4", override)
+
+
+def test_a3c_settings_under_ppo_warn_with_the_key_ppo_reads() -> None:
+    with pytest.warns(UserWarning, match=r"loss\.gamma \(PPO reads ppo\.gamma\), optim\.amsgrad"):
+        tiny_config("a3c", "algo=ppo", "ppo.envs=4", "loss.gamma=0.9", "optim.amsgrad=false")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tiny_config("a3c", "algo=ppo", "ppo.envs=4")  # defaults: nothing to warn about
+        tiny_config("a3c", "loss.gamma=0.9")  # A3C reads it
 
 
 @pytest.mark.parametrize(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -265,6 +266,19 @@ class PPOConfig:
         _require(0 <= self.lam <= 1, "ppo.lam", f"must lie in [0, 1], got {self.lam}")
 
 
+#: The PPO constant that plays each A3C constant's part.
+_PPO_COUNTERPARTS = {
+    "loss.gamma": "ppo.gamma",
+    "loss.tau": "ppo.lam",
+    "loss.beta": "ppo.entropy_coef",
+    "loss.value_coef": "ppo.value_coef",
+    "optim.lr": "ppo.lr",
+    "optim.eps": "ppo.adam_eps",
+    "optim.grad_clip": "ppo.max_grad_norm",
+    "optim.meta_grad_clip": "ppo.max_grad_norm",
+}
+
+
 def _finite(value: float) -> bool:
     return math.isfinite(value)
 
@@ -369,6 +383,25 @@ class TrainConfig:
             "model.category_set",
             f"{self.model.category_set!r} differs from env.sim.category_set {self.env.sim.category_set!r}",
         )
+        if self.algo == "ppo" and (ignored := self.a3c_only_settings()):
+            # A warning, not an error: `--set algo=ppo` over a config written for A3C should still run.
+            warnings.warn(
+                "algo ppo reads its own constants (ppo.*); these A3C settings change nothing: "
+                + ", ".join(ignored),
+                stacklevel=3,
+            )
+
+    def a3c_only_settings(self) -> list[str]:
+        """The ``loss.*`` and ``optim.*`` keys set away from their defaults, each with the key PPO
+        reads instead where there is one (``loss.gamma -> ppo.gamma``)."""
+        changed = []
+        for section, default in (("loss", LossConfig()), ("optim", OptimConfig())):
+            for f in dataclasses.fields(default):
+                if getattr(getattr(self, section), f.name) != getattr(default, f.name):
+                    key = f"{section}.{f.name}"
+                    counterpart = _PPO_COUNTERPARTS.get(key)
+                    changed.append(f"{key} (PPO reads {counterpart})" if counterpart else key)
+        return changed
 
     @property
     def parent_reward(self) -> bool:
