@@ -19,7 +19,6 @@ from mapless.errors import UnknownNameError
 from mapless.scenes.categories import CATEGORY_SETS, V1_TO_V5, category_set
 
 GLOVE_FILES = {"mjolnir101": "priors/glove_thorv1_300.npz", "all_types": "priors/glove_thorv3_300.npz"}
-GLOVE_DIM = 300
 
 
 @functools.cache

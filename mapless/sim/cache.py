@@ -51,10 +51,6 @@ def scenes_dir(cache_dir: str | Path | None = None) -> Path:
     return Path(root) / "scenes"
 
 
-def default_cache_dir() -> Path:
-    return scenes_dir()
-
-
 class CacheError(MaplessError):
     """The scene cache cannot be written where it must be (``mapless scenes build``)."""
 

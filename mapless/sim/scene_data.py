@@ -19,7 +19,6 @@ ACTIONS: tuple[str, ...] = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", 
 MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
 N_MOVEMENT_ACTIONS = 5
 NUM_ACTIONS = len(ACTIONS)
-GRID_SIZE = 0.25
 #: A pose-graph component smaller than this share of the scene's largest is an island (SceneData.usable_poses).
 USABLE_COMPONENT_SHARE = 0.25
 
