@@ -6,12 +6,15 @@ pauses every ``--eval-every`` minutes of training to evaluate the current policy
 the built-in val set (``--val-episodes``, the same episodes for every run, actions sampled as the
 evaluator does), and prints SR / SPL against minutes and frames, the time to reach ``--target`` val SR
 (46 %: MJOLNIR-o's test SR after 100k episodes), and one PNG of SR against minutes.
+``--protocol reference`` trains under the 1.5 m success rule and evaluates on its ``ref_val`` set
+(the scenes must be built for it: ``mapless scenes build --sim visibility_distance=1.5``).
 
 Runs go ``--parallel`` at a time, each in its own spawned process on one thread (this machine has 2
 cores), so two runs side by side see the same machine.
 
     python bench/learning_curve.py --run mlp --run cvmeta --minutes 10
     python bench/learning_curve.py --run "cvmeta model.target_context=true" --run cvmeta@a3c
+    python bench/learning_curve.py --protocol reference --run cvmeta --run "cvmeta ppo.minibatches=4"
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ import json
 import multiprocessing
 import time
 from pathlib import Path
+
+from mapless.episodes.protocols import get_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
 PPO_CONFIG = ROOT / "experiments" / "train_ppo.yaml"
@@ -48,12 +53,12 @@ def run_config(run: str, overrides: list[str]):
     return from_dict(TrainConfig, apply_overrides(data, [*overrides, *own]))
 
 
-def val_subset(count: int):
-    """The first ``count / 4`` episodes of every room type in the built-in val set."""
+def val_subset(count: int, split: str = "val"):
+    """The first ``count / 4`` episodes of every room type in the built-in ``split`` set."""
     from mapless.episodes.evalsets import builtin_path, load
     from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 
-    episodes, _ = load(builtin_path("val"))
+    episodes, _ = load(builtin_path(split))
     per_room = max(1, count // len(ROOM_TYPES))
     chosen = [[e for e in episodes if room_type_of(e.scene) == room][:per_room] for room in ROOM_TYPES]
     return [e for room in chosen for e in room]
@@ -79,7 +84,7 @@ def evaluate_policy(model, library, episodes) -> dict[str, float]:
     }
 
 
-def train_and_evaluate(job: tuple[str, list[str], float, float, int]) -> dict:
+def train_and_evaluate(job: tuple[str, list[str], float, float, int, str]) -> dict:
     """One run: train for ``minutes`` of training time, evaluating every ``eval_every`` minutes."""
     import torch
 
@@ -88,13 +93,13 @@ def train_and_evaluate(job: tuple[str, list[str], float, float, int]) -> dict:
     from mapless.train.builders import BuiltinLibrary, prepare_scenes
     from mapless.train.ppo import PPOTrainer
 
-    run, overrides, minutes, eval_every, val_episodes = job
+    run, overrides, minutes, eval_every, val_episodes, val_split = job
     config = run_config(run, overrides)
     prepare_scenes(config)
     trainer = (PPOTrainer if config.algo == "ppo" else BatchedTrainer)(config, None)
     trainer._setup(None)
     library = BuiltinLibrary(config)()
-    episodes = val_subset(val_episodes)
+    episodes = val_subset(val_episodes, val_split)
     points = [{"minutes": 0.0, "frames": 0, **evaluate_policy(trainer.model, library, episodes)}]
     print(f"{run}: 0.0 min, 0 frames, val SR {points[0]['sr']:.1f}", flush=True)
     trained, frames, next_eval = 0.0, 0, eval_every * 60
@@ -174,14 +179,25 @@ def main() -> None:
     parser.add_argument("--target", type=float, default=46.0, help="val SR (%%) to time")
     parser.add_argument("--parallel", type=int, default=2)
     parser.add_argument(
+        "--protocol",
+        choices=("standard", "reference"),
+        default="standard",
+        help="standard: success within 1.0 m, val x21-x25; reference: 1.5 m (training too), ref_val",
+    )
+    parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every run"
     )
     parser.add_argument("--out", type=Path, default=Path("reports/learning_curve"))
     args = parser.parse_args()
     runs = args.run or ["mlp", "cvmeta"]
+    protocol = get_protocol(args.protocol)
+    overrides = [f"env.sim.visibility_distance={protocol.visibility_distance}", *args.set]
     for run in runs:  # every config is validated before any training starts
-        run_config(run, args.set)
-    jobs = [(run, args.set, args.minutes, args.eval_every, args.val_episodes) for run in runs]
+        run_config(run, overrides)
+    jobs = [
+        (run, overrides, args.minutes, args.eval_every, args.val_episodes, protocol.select_split)
+        for run in runs
+    ]
     with multiprocessing.get_context("spawn").Pool(max(1, min(args.parallel, len(jobs)))) as pool:
         results = pool.map(train_and_evaluate, jobs)
     args.out.mkdir(parents=True, exist_ok=True)
