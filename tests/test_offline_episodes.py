@@ -13,7 +13,8 @@ import torch
 
 from mapless.episodes import Episode
 from mapless.offline import OfflineFormatError, import_episode_file, offline_library, read_episode_file
-from mapless.offline.episodes import RawEpisode, map_episodes, write_episode_file
+from mapless.offline.episode_writer import write_episode_file
+from mapless.offline.episodes import RawEpisode, map_episodes
 from mapless.sim.scene_data import pose_key
 
 #: 50 of the 1000 published HOZ bathroom validation episodes, in their original pickle format
@@ -407,7 +408,7 @@ def test_one_file_per_room_type_as_the_references_read_them(
     back, bad = read_episode_file(tmp_path / "bathroom_val.pkl")
     assert not bad and len(back) == 3
     # The built-in test set: one file per room type, 250 episodes each.
-    from mapless.offline.episodes import write_room_files
+    from mapless.offline.episode_writer import write_room_files
 
     episodes = evalsets.load(evalsets.builtin_path("test"))[0]
     files = write_room_files(

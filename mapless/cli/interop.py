@@ -253,7 +253,11 @@ def _export_episodes(args: argparse.Namespace) -> int:
 
     from mapless.episodes import evalsets
     from mapless.episodes.protocols import PROTOCOLS, protocol_of_split
-    from mapless.offline.episodes import REFERENCE_EPISODES_PER_ROOM, write_episode_file, write_room_files
+    from mapless.offline.episode_writer import (
+        REFERENCE_EPISODES_PER_ROOM,
+        write_episode_file,
+        write_room_files,
+    )
     from mapless.scenes.catalogue import room_type_of
     from mapless.sim.cache import fingerprint
     from mapless.sim.library import SceneLibrary

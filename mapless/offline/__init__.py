@@ -1,12 +1,17 @@
-"""SAVN/MJOLNIR offline data both ways: scene folders (reader, writer) and episode pickles."""
+"""SAVN/MJOLNIR offline data both ways.
 
+Scene folders: ``format`` (the file layout), ``reader``, ``writer``. Evaluation episode pickles:
+``episodes`` (read and map onto the built-in scenes), ``episode_writer``; ``safe_pickle`` reads a
+published pickle without running its code.
+"""
+
+from mapless.offline.episode_writer import write_episode_file
 from mapless.offline.episodes import (
     MappingReport,
     RawEpisode,
     import_episode_file,
     map_episodes,
     read_episode_file,
-    write_episode_file,
 )
 from mapless.offline.format import FORMATS, OfflineFormatError, scene_folder_name
 from mapless.offline.reader import find_scene_folder, load_offline_scene, offline_library, offline_loader
