@@ -296,6 +296,80 @@ def _read_features(
     return out, scale, "semantic" if semantic else "resnet18"
 
 
+def _successor_table(
+    keys: list[str], index: dict[str, int], graph_successors: list[set[int]], grid_size: float, step: int
+) -> np.ndarray:
+    """``[P, movement actions]`` pose index each movement leads to (itself where the graph has no
+    such edge): the graph stores edges without their action, so each action's expected key is
+    guessed and kept when the graph has that edge."""
+    successors = np.repeat(np.arange(len(keys), dtype=np.int32)[:, None], N_MOVEMENT_ACTIONS, axis=1)
+    for p, key in enumerate(keys):
+        out = graph_successors[p]
+        if not out:
+            continue
+        for action in range(N_MOVEMENT_ACTIONS):
+            for guess in guess_next_keys(key, action, grid_size, step):
+                q = index.get(guess)
+                if q is not None and q in out:
+                    successors[p, action] = q
+                    break
+    return successors
+
+
+def _views(
+    n_poses: int,
+    types: list[str],
+    visible_poses: list[list[int]],
+    boxes: dict[int, dict[str, np.ndarray]],
+    alias_types: set[str],
+) -> tuple[dict[str, int], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What each pose sees, as ``SceneData``'s flat view arrays: the file's boxes per type attributed
+    to that type's visible instances in order, the rest to one never-visible ``unattributed``
+    instance per type (numbered after the named ones). Returns those types (in order of first use)
+    and ``view_ptr``, ``view_instance``, ``view_box``, ``view_visible``."""
+    # Visible instances per pose, in instance order (= file order).
+    visible_at: list[list[int]] = [[] for _ in range(n_poses)]
+    for i, pose_list in enumerate(visible_poses):
+        for p in sorted(set(pose_list)):
+            visible_at[p].append(i)
+    unattributed: dict[str, int] = {}
+    entries: list[list[tuple[int, np.ndarray, bool]]] = []
+    zero = np.zeros(4)
+    for p in range(n_poses):
+        row: list[tuple[int, np.ndarray, bool]] = []
+        by_type: dict[str, list[int]] = {}
+        for i in visible_at[p]:
+            by_type.setdefault(types[i], []).append(i)
+        pose_boxes = {t: b for t, b in boxes.get(p, {}).items() if t not in alias_types}
+        for object_type in dict.fromkeys([*by_type, *pose_boxes]):
+            seen = by_type.get(object_type, [])
+            type_boxes = pose_boxes.get(object_type, np.zeros((0, 4)))
+            for j, i in enumerate(seen):
+                row.append((i, type_boxes[j] if j < len(type_boxes) else zero, True))
+            if len(type_boxes) > len(seen):
+                k = unattributed.setdefault(object_type, len(unattributed))
+                row.extend((-1 - k, b, False) for b in type_boxes[len(seen) :])
+        entries.append(row)
+    # Unattributed instances go after the named ones (negative placeholders resolved here).
+    n_named = len(types)
+    view_ptr = np.zeros(n_poses + 1, dtype=np.int64)
+    flat_inst, flat_box, flat_vis = [], [], []
+    for p, row in enumerate(entries):
+        resolved = sorted(
+            (((i if i >= 0 else n_named - 1 - i), box, vis) for i, box, vis in row),
+            key=lambda entry: entry[0],
+        )
+        view_ptr[p + 1] = view_ptr[p] + len(resolved)
+        for i, box, vis in resolved:
+            flat_inst.append(i)
+            flat_box.append(box)
+            flat_vis.append(vis)
+    view_instance = np.asarray(flat_inst, dtype=np.int32)
+    view_box = np.asarray(flat_box, dtype=np.float32).reshape(-1, 4)
+    view_visible = np.asarray(flat_vis, dtype=bool)
+    return unattributed, view_ptr, view_instance, view_box, view_visible
+
+
 def load_offline_scene(
     folder: str | Path,
     category_set: str = "mjolnir101",
@@ -338,17 +412,7 @@ def load_offline_scene(
             )
     step = rotation_step or infer_rotation_step(poses[:, 2].astype(int))
 
-    successors = np.repeat(np.arange(len(keys), dtype=np.int32)[:, None], N_MOVEMENT_ACTIONS, axis=1)
-    for p, key in enumerate(keys):
-        out = graph_successors[p]
-        if not out:
-            continue
-        for action in range(N_MOVEMENT_ACTIONS):
-            for guess in guess_next_keys(key, action, grid_size, step):
-                q = index.get(guess)
-                if q is not None and q in out:
-                    successors[p, action] = q
-                    break
+    successors = _successor_table(keys, index, graph_successors, grid_size, step)
 
     object_ids, visible_poses, unknown_visible = _visible_map(folder / visible_file, index)
     boxes_path = folder / BOXES_FILE
@@ -359,51 +423,13 @@ def load_offline_scene(
             warnings.warn(
                 f"{folder / name}: {count} pose keys are not nodes of {GRAPH_FILE}; ignored", stacklevel=2
             )
-    alias_types = set(side.get("alias_types", ()))
-
-    # Visible instances per pose, in instance order (= file order).
-    visible_at: list[list[int]] = [[] for _ in keys]
-    for i, pose_list in enumerate(visible_poses):
-        for p in sorted(set(pose_list)):
-            visible_at[p].append(i)
     types = [object_type_of_id(object_id) for object_id in object_ids]
-    unattributed: dict[str, int] = {}
-    entries: list[list[tuple[int, np.ndarray, bool]]] = []
-    zero = np.zeros(4)
-    for p in range(len(keys)):
-        row: list[tuple[int, np.ndarray, bool]] = []
-        by_type: dict[str, list[int]] = {}
-        for i in visible_at[p]:
-            by_type.setdefault(types[i], []).append(i)
-        pose_boxes = {t: b for t, b in boxes.get(p, {}).items() if t not in alias_types}
-        for object_type in dict.fromkeys([*by_type, *pose_boxes]):
-            seen = by_type.get(object_type, [])
-            type_boxes = pose_boxes.get(object_type, np.zeros((0, 4)))
-            for j, i in enumerate(seen):
-                row.append((i, type_boxes[j] if j < len(type_boxes) else zero, True))
-            if len(type_boxes) > len(seen):
-                k = unattributed.setdefault(object_type, len(unattributed))
-                row.extend((-1 - k, b, False) for b in type_boxes[len(seen) :])
-        entries.append(row)
-    # Unattributed instances go after the named ones (negative placeholders resolved here).
-    n_named = len(object_ids)
+    alias_types = set(side.get("alias_types", ()))
+    unattributed, view_ptr, view_instance, view_box, view_visible = _views(
+        len(keys), types, visible_poses, boxes, alias_types
+    )
     instance_ids = tuple(object_ids) + tuple(f"{t}|{UNATTRIBUTED}" for t in unattributed)
     instance_types = tuple(types) + tuple(unattributed)
-    view_ptr = np.zeros(len(keys) + 1, dtype=np.int64)
-    flat_inst, flat_box, flat_vis = [], [], []
-    for p, row in enumerate(entries):
-        resolved = sorted(
-            (((i if i >= 0 else n_named - 1 - i), box, vis) for i, box, vis in row),
-            key=lambda entry: entry[0],
-        )
-        view_ptr[p + 1] = view_ptr[p] + len(resolved)
-        for i, box, vis in resolved:
-            flat_inst.append(i)
-            flat_box.append(box)
-            flat_vis.append(vis)
-    view_instance = np.asarray(flat_inst, dtype=np.int32)
-    view_box = np.asarray(flat_box, dtype=np.float32).reshape(-1, 4)
-    view_visible = np.asarray(flat_vis, dtype=bool)
 
     rows = category_rows(instance_types, category_set)
     n_categories = _n_categories(category_set)
