@@ -140,6 +140,40 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
     assert torch.allclose(values[mask], segment.values[:steps][mask], atol=1e-5)
 
 
+def test_a_whole_episode_cut_by_the_step_limit_bootstraps_with_its_next_steps_value() -> None:
+    """With ``ppo.bootstrap_time_limit`` an adaptive episode truncated at step T is bootstrapped with
+    the value its step T + 1 has when the limit is one step later (same seed: the same episodes and
+    actions), under its adapted fast weights; without it the limit is an end (the references' R = 0)."""
+
+    def collect(max_steps: int, *extra: str):
+        config = tiny_config(
+            "savn",
+            "algo=ppo",
+            "ppo.envs=8",
+            "frames=100",
+            "model.inner_lr=0.1",
+            f"env.max_steps={max_steps}",
+            *extra,
+        )
+        trainer = PPOTrainer(config, None, fixture_library)
+        trainer._setup(None)
+        return trainer.collector.collect(max_steps, trainer.rng)
+
+    cut = collect(8, "ppo.bootstrap_time_limit=true")
+    longer = collect(9, "ppo.bootstrap_time_limit=true")
+    truncated = cut.truncated[7]
+    assert truncated.any(), "some fixture episodes should run to the limit"
+    assert not cut.terminated[7][truncated].any()
+    assert torch.equal(cut.actions, longer.actions[:8])
+    assert torch.allclose(cut.bootstrap[7][truncated], longer.values[8][truncated], atol=1e-5)
+    assert (cut.bootstrap[:7] == 0).all() and (cut.bootstrap[7][~truncated] == 0).all()
+    references = collect(8)
+    assert not references.truncated.any() and torch.equal(
+        references.terminated[7], cut.terminated[7] | truncated
+    )
+    assert (references.bootstrap == 0).all()
+
+
 @pytest.mark.parametrize("model", ["savn", "cvmeta"])
 def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones(model: str) -> None:
     trainer = PPOTrainer(

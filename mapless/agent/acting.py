@@ -165,6 +165,10 @@ class AdaptingActor:
     ) -> ModelOutput:
         return self.loop.forward(self.state, obs, hidden, prev_policy)
 
+    def value(self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor) -> Tensor:
+        """``[B]`` V of the current state under each slot's fast weights; records nothing."""
+        return self.loop.value(self.state, obs, hidden, prev_policy)
+
     def observe(self, output: ModelOutput, alive: Tensor) -> None:
         """After a step: every k steps the slots still running (and under their update limit) adapt."""
         self.loop.observe(self.state, output, alive)

@@ -97,6 +97,23 @@ class TestTimeAdaptation(FastWeightForward):
         state.chunk.append(Step(gates, inputs, state.ids, 0))
         return output
 
+    def value(
+        self,
+        state: AdaptationState,
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+    ) -> Tensor:
+        """``[B]`` V of ``obs`` under each slot's current fast weights, without recording a step (the
+        value a time-limit truncation is bootstrapped with)."""
+
+        def low_rank(inputs: Tensor) -> Tensor:
+            return apply_low_rank(inputs, state.left, state.right)
+
+        with torch.no_grad():
+            output, _, _ = self._forward(state, obs, hidden, prev_policy, low_rank)
+        return output.value.reshape(-1)
+
     def observe(self, state: AdaptationState, output: ModelOutput, alive: Tensor) -> None:
         """Record the step's row; after k rows the slots still running (``alive``) and under their
         episode's update limit take the inner step."""

@@ -19,9 +19,11 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
     (the progress bar aside), so experiments with an identical run share it."""
     data = to_dict(dataclasses.replace(train_cfg, progress=False))
+    # Keys added after runs were made: hashed only when set, so that finished runs keep their folders.
     if train_cfg.env.layouts == type(train_cfg.env.layouts)():
-        # Added after runs were made: hashed only when set, so that finished runs keep their folders.
         del data["env"]["layouts"]
+    if not train_cfg.ppo.bootstrap_time_limit:
+        del data["ppo"]["bootstrap_time_limit"]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"

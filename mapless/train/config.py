@@ -224,6 +224,9 @@ class PPOConfig:
     imitation_coef: weight of an imitation term, the cross-entropy of the policy to the simulator's
         shortest-path expert on the agent's own steps (DAgger-style); 0 = off, the paper's protocol.
     imitation_frames: the weight falls linearly to 0 over this many frames (0 = constant).
+    bootstrap_time_limit: adaptive models' whole episodes cut by the step limit are bootstrapped
+        with V of the state they were cut in, as the other models' segments are (off: the
+        references' R = 0 there, which makes a blind ``Done`` free near the limit).
     """
 
     envs: int = 64
@@ -243,6 +246,7 @@ class PPOConfig:
     normalize_advantages: bool = True
     imitation_coef: float = 0.0
     imitation_frames: int = 0
+    bootstrap_time_limit: bool = False
 
     def __post_init__(self) -> None:
         _require(

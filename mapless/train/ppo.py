@@ -79,6 +79,7 @@ class PPOTrainer(BatchedTrainer):
             self.device,
             whole_episodes=adaptive,
             expert=cfg.ppo.imitation_coef > 0,
+            bootstrap_time_limit=cfg.ppo.bootstrap_time_limit,
         )
         self.inner = InnerLoop(self.model, first_order=cfg.meta.first_order) if adaptive else None
         if resume is not None:

@@ -11,7 +11,8 @@ Two layouts, one :class:`Segment` type:
   ``k`` steps one SGD step of the episode's own fast weights on the learned interaction loss. An
   episode's adaptation state cannot be carried across a segment boundary into a replay, so each
   replay starts at the episode's first step (docs/training.md, "PPO"). As in the references, the
-  30-step limit is not bootstrapped there.
+  30-step limit is not bootstrapped there, unless ``bootstrap_time_limit``: then, as for segments,
+  with V of the state the episode was cut in, under the episode's adapted fast weights.
 
 Actions are drawn by inverse CDF from uniforms of the trainer's numpy generator, so a run is
 reproducible from its seed and its checkpoint.
@@ -109,11 +110,16 @@ class SegmentCollector:
         device: torch.device,
         whole_episodes: bool,
         expert: bool = False,
+        bootstrap_time_limit: bool = False,
     ):
-        """``expert``: record the shortest-path expert's action at every step (imitation)."""
+        """``expert``: record the shortest-path expert's action at every step (imitation).
+        ``bootstrap_time_limit``: whole episodes cut by the step limit are bootstrapped (segments
+        always are)."""
         self.model, self.env, self.sampler = model, env, sampler
         self.observation_keys, self.device = obs_keys, device
         self.whole_episodes = whole_episodes
+        # The references' R = 0 at the step limit: a truncation of a whole episode is an end.
+        self.cut_is_end = np.bool_(whole_episodes and not bootstrap_time_limit)
         self.expert = expert
         n = env.batch_size
         self.memory = PolicyMemory(model, n, device)
@@ -225,8 +231,7 @@ class SegmentCollector:
         n, device, acted = env.batch_size, self.device, self._acted
         out = acted.output
         logits = out.logits.detach()
-        # Whole episodes follow the references (R = 0 at the step limit): a truncation is an end there.
-        cut_is_end = np.bool_(self.whole_episodes)
+        cut_is_end = self.cut_is_end
         bootstrap = torch.zeros(n, device=device)
         prev_policy = self.memory.prev_policy  # the one this step was given
         # The inner loop's test-time steps differentiate through the recurrence back to the start
@@ -236,7 +241,7 @@ class SegmentCollector:
         self.memory.advance(ModelOutput(logits, out.value, hidden))
         if self._actor is not None:
             self._actor.observe(out, torch.as_tensor(~env.done, device=device))
-        elif step.truncated.any():
+        if step.truncated.any() and not cut_is_end:
             bootstrap[torch.as_tensor(step.truncated, device=device)] = self._values_after(step.truncated)
         self.reward_sum += step.reward
         for slot in np.flatnonzero(step.terminated | step.truncated):
@@ -264,9 +269,12 @@ class SegmentCollector:
     def _values_after(self, slots: np.ndarray) -> Tensor:
         """V of the states the truncated episodes in ``slots`` were cut in."""
         index = torch.as_tensor(np.flatnonzero(slots), device=self.device)
-        obs = to_tensors(self.env.observe(self.observation_keys), self.device)
-        obs = {k: v.index_select(0, index) for k, v in obs.items()}
+        obs_all = to_tensors(self.env.observe(self.observation_keys), self.device)
         memory = self.memory
-        rows = tuple(t.index_select(0, index) for t in memory.hidden)
-        with torch.no_grad(), self.model.memoizing_in_view(self._memo):
-            return self.model(obs, rows, memory.prev_policy.index_select(0, index)).value.reshape(-1)
+        with self.model.memoizing_in_view(self._memo):
+            if self._actor is not None:  # the adapted fast weights hold one row per slot
+                return self._actor.value(obs_all, memory.hidden, memory.prev_policy).index_select(0, index)
+            obs = {k: v.index_select(0, index) for k, v in obs_all.items()}
+            rows = tuple(t.index_select(0, index) for t in memory.hidden)
+            with torch.no_grad():
+                return self.model(obs, rows, memory.prev_policy.index_select(0, index)).value.reshape(-1)
