@@ -59,7 +59,10 @@ def test_aggregate_hand_computed_set():
     assert m["l5_spl"] == pytest.approx((0.5 + 0 + 1.0) / 3)
     assert m["ep_length"] == pytest.approx((8 + 10 + 100 + 6) / 4)
     assert m["done_rate"] == pytest.approx(0.75)
+    assert m["false_done_rate"] == 0.0  # every Done here succeeded; the failure is a timeout
     assert m["failed_action_rate"] == pytest.approx(10 / 124)
+    wrong = aggregate([*results, ep(4, False, 3, 5, done=True)])
+    assert wrong["done_rate"] == pytest.approx(4 / 5) and wrong["false_done_rate"] == pytest.approx(1 / 5)
 
 
 def test_savn_spl_equals_paper_spl_when_lengths_are_consistent():

@@ -110,7 +110,8 @@ def exploration_curve(
 
 
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
-    """Per-episode arrays: success, spl, l5 membership, length, done, failed-action share, exploration."""
+    """Per-episode arrays: success, spl, l5 membership, length, done, false done (``Done`` with no
+    target instance visible), failed-action share, exploration."""
     n = len(results)
     values = {
         "success": np.fromiter((r.success for r in results), dtype=np.float64, count=n),
@@ -120,6 +121,9 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
         "l5": np.fromiter((in_l5(r.optimal_length) for r in results), dtype=bool, count=n),
         "ep_length": np.fromiter((r.length for r in results), dtype=np.float64, count=n),
         "done": np.fromiter((r.called_done for r in results), dtype=np.float64, count=n),
+        "false_done": np.fromiter(
+            (r.called_done and not r.success for r in results), dtype=np.float64, count=n
+        ),
         "failed_actions": np.fromiter((r.failed_actions for r in results), dtype=np.float64, count=n),
         "reward": np.fromiter((r.reward for r in results), dtype=np.float64, count=n),
         "exploration": np.fromiter(
@@ -140,6 +144,7 @@ METRIC_KEYS = (
     "l5_spl",
     "ep_length",
     "done_rate",
+    "false_done_rate",
     "failed_action_rate",
     "exploration_ratio",
     "reward",
@@ -167,6 +172,7 @@ def aggregate(results: Sequence[EpisodeResult]) -> dict[str, float]:
         "l5_spl": mean_or_nan(v["spl"][l5]),
         "ep_length": mean_or_nan(v["ep_length"]),
         "done_rate": mean_or_nan(v["done"]),
+        "false_done_rate": mean_or_nan(v["false_done"]),
         "failed_action_rate": float(v["failed_actions"].sum() / max(v["ep_length"].sum(), 1.0)),
         "exploration_ratio": mean_or_nan(v["exploration"][np.isfinite(v["exploration"])]),
         "reward": mean_or_nan(v["reward"]),

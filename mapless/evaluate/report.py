@@ -26,6 +26,7 @@ COLUMNS: dict[str, tuple[str, bool]] = {
     "l5_spl": ("SPL L≥5", True),
     "ep_length": ("length", False),
     "done_rate": ("Done", True),
+    "false_done_rate": ("false Done", True),
     "failed_action_rate": ("failed", True),
     "exploration_ratio": ("explore", True),
 }
@@ -162,8 +163,9 @@ def room_table(record: dict, columns: Sequence[str] = MAIN_COLUMNS) -> str:
 
 
 def details_table(records: Sequence[dict]) -> str:
-    """Secondary metrics (mean over seeds, overall): length, Done, failed actions, exploration."""
-    cols = ("ep_length", "done_rate", "failed_action_rate", "exploration_ratio")
+    """Secondary metrics (mean over seeds, overall): length, Done, false Done, failed actions,
+    exploration."""
+    cols = ("ep_length", "done_rate", "false_done_rate", "failed_action_rate", "exploration_ratio")
     header = ["model", *(COLUMNS[c][0] for c in cols)]
     rows = []
     for rec in records:

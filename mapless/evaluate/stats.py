@@ -33,6 +33,7 @@ CI_METRICS: dict[str, tuple[str, bool]] = {
     "l5_spl": ("spl", True),
     "ep_length": ("ep_length", False),
     "done_rate": ("done", False),
+    "false_done_rate": ("false_done", False),
     "exploration_ratio": ("exploration", False),
 }
 
