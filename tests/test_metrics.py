@@ -4,11 +4,13 @@ ratio, bootstrap intervals and the report cells."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 
+from mapless.cli import main
 from mapless.evaluate.metrics import (
     EpisodeResult,
     aggregate,
@@ -190,3 +192,47 @@ def test_difference_cells_are_signed_points_for_rates_and_steps_for_lengths():
     length = {**rate, "mean": 1.5, "ci_low": 0.5, "ci_high": 2.5}
     assert format_difference("ep_length", length) == "+1.5 [+0.5, +2.5]"
     assert format_difference("spl", {**rate, "mean": float("nan")}) == "–"
+
+
+def test_compare_prints_b_minus_a_paired_on_the_same_episodes(tmp_path, capsys):
+    """A run's evaluation cache against a model record of a report (two seeds): SR 50 % against
+    the seeds' 75 % and 100 %, so B − A is +37.5 points; B's false Done falls from 25 % to 0."""
+    a = [ep(0, True, 8, 4), ep(1, False, 3, 5), ep(2, True, 10, 5), ep(3, False, 100, 7, done=False)]
+    b1 = [ep(0, True, 8, 4), ep(1, True, 5, 5), ep(2, True, 10, 5), ep(3, False, 100, 7, done=False)]
+    b2 = [ep(0, True, 8, 4), ep(1, True, 5, 5), ep(2, True, 10, 5), ep(3, True, 7, 7)]
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "test.json").write_text(json.dumps({"episodes": [r.to_dict() for r in a]}))
+    report = {"models": [model_record("savn", [b1, b2]), model_record("random", [a])]}
+    (tmp_path / "table1.json").write_text(json.dumps(report))
+    assert main(["compare", str(tmp_path / "eval" / "test.json"), f"{tmp_path / 'table1.json'}:savn"]) == 0
+    out = capsys.readouterr().out
+    cells = {
+        row[0].strip(): row[1:] for row in (line.strip("| \n").split(" | ") for line in out.splitlines())
+    }
+    assert cells["metric"] == ["A: " + tmp_path.name, "B: savn", "B − A"]  # the run folder names A
+    sr_a, sr_b, sr_diff = cells["SR"]
+    assert sr_a.startswith("50.0 [") and sr_b.startswith("87.5 ± 17.7 [") and sr_diff.startswith("+37.5 [")
+    false_a, false_b, false_diff = cells["false Done"]
+    assert (
+        false_a.startswith("25.0 [") and false_b.startswith("0.0 ± 0.0") and false_diff.startswith("-25.0 [")
+    )
+
+
+@pytest.mark.parametrize(
+    ("content", "b", "message"),
+    [
+        ('{"models": [{"model": "a3c", "episodes": [[]]}]}', "{report}", "name one of its models"),
+        ("[1, 2]", "{a}", "not a mapless result file"),
+        ("{not json", "{a}", "cannot read results"),
+        ('{"episodes": [{"index": 0}]}', "{a}", "malformed episode record"),
+        ("VAL", "{a}", "same episodes"),
+    ],
+)
+def test_compare_refuses_what_it_cannot_pair(tmp_path, capsys, content, b, message):
+    a = tmp_path / "a.json"
+    a.write_text(json.dumps({"episodes": [ep(0, True, 8, 4).to_dict(), ep(1, False, 3, 5).to_dict()]}))
+    other = tmp_path / "report.json"
+    other.write_text(json.dumps({"episodes": [ep(5, True, 8, 4).to_dict()]}) if content == "VAL" else content)
+    b_spec = str(other) if b == "{a}" else f"{other}:cvmeta"
+    assert main(["compare", str(a), b_spec]) == 2
+    assert message in capsys.readouterr().err

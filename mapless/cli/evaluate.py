@@ -1,4 +1,5 @@
-"""``mapless eval`` (one model on a fixed episode set) and ``mapless reproduce`` (a paper experiment)."""
+"""``mapless eval`` (one model on a fixed episode set), ``mapless compare`` (two results, paired) and
+``mapless reproduce`` (a paper experiment)."""
 
 from __future__ import annotations
 
@@ -64,6 +65,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
         "reports/eval/<model> for random and oracle)",
     )
+
+    compare = add_command(
+        subparsers,
+        "compare",
+        _compare,
+        help="B minus A on the same episodes: SR, SPL, L>=5 and false Done, with paired 95 % intervals",
+        description="Each side is a result file: a run's evaluation (RUN/eval/*.json), a `mapless eval` "
+        "record (SPLIT.json), or REPORT.json:MODEL of an experiment report. Prints a markdown table.",
+    )
+    compare.add_argument("a", metavar="A", help="FILE or REPORT.json:MODEL")
+    compare.add_argument("b", metavar="B", help="FILE or REPORT.json:MODEL")
 
     rep = add_command(
         subparsers,
@@ -183,6 +195,16 @@ def _eval(args: argparse.Namespace) -> int:
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "
           f"SR {overall['success']:.3f}; written to {out}", file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from mapless.evaluate.report import comparison_table, read_results
+
+    (label_a, a), (label_b, b) = read_results(args.a), read_results(args.b)
+    if label_a == label_b:
+        label_a, label_b = args.a, args.b
+    print(comparison_table(label_a, a, label_b, b))
     return 0
 
 

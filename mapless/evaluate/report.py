@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
+from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, summarize
 from mapless.evaluate.stats import Difference, Estimate, difference_estimates, seed_estimates
 from mapless.files import write_text
@@ -174,6 +175,71 @@ def details_table(records: Sequence[dict]) -> str:
             [rec["model"], *(format_value(c, sum(s[c] for s in per_seed) / len(per_seed)) for c in cols)]
         )
     return markdown(header, rows)
+
+
+#: What ``mapless compare`` reports, B minus A.
+COMPARED = ("success", "spl", "l5_success", "l5_spl", "false_done_rate")
+
+
+def read_results(spec: str | Path) -> tuple[str, list[list[EpisodeResult]]]:
+    """Every seed's episodes of one result file, and a label: ``FILE`` is an evaluation's cache
+    (``RUN/eval/*.json``: one seed) or a model record (``mapless eval``'s ``SPLIT.json``: its
+    seeds); ``FILE:MODEL`` picks a model's record from an experiment report (``table1.json``)."""
+    text = str(spec)
+    path, model = Path(text), None
+    if not path.is_file() and ":" in text:
+        head, _, model = text.rpartition(":")
+        path = Path(head)
+    try:
+        data = read_json(path)
+    except (OSError, ValueError) as error:
+        raise MaplessError(f"cannot read results {path}: {error}") from None
+    if not isinstance(data, dict):
+        raise MaplessError(f"{path}: not a mapless result file (a JSON object with 'episodes')")
+    if "models" in data:
+        names = [r.get("model") for r in data["models"]]
+        if model not in names:
+            raise MaplessError(
+                f"{path} is an experiment report: name one of its models as {path}:MODEL ({', '.join(map(str, names))})"
+            )
+        data = data["models"][names.index(model)]
+    elif model is not None:
+        raise MaplessError(f"{path} holds one model's results; leave out ':{model}'")
+    episodes = data.get("episodes")
+    if not isinstance(episodes, list) or not episodes:
+        raise MaplessError(f"{path}: no 'episodes' (a mapless evaluation, `mapless eval` record or report)")
+    per_seed = episodes if isinstance(episodes[0], list) else [episodes]
+    try:
+        results = [[EpisodeResult.from_dict(d) for d in seed] for seed in per_seed]
+    except (TypeError, ValueError) as error:
+        raise MaplessError(f"{path}: malformed episode record ({error})") from None
+    # An evaluation cache is named after its checkpoint; its run folder says more.
+    label = data.get("model") or (path.parent.parent.name if path.parent.name == "eval" else path.stem)
+    return str(label), results
+
+
+def comparison_table(
+    label_a: str,
+    per_seed_a: Sequence[Sequence[EpisodeResult]],
+    label_b: str,
+    per_seed_b: Sequence[Sequence[EpisodeResult]],
+) -> str:
+    """A, B and B minus A, paired over the same episodes (an error otherwise), for :data:`COMPARED`."""
+    try:
+        differences = difference_estimates(per_seed_a, per_seed_b, COMPARED)
+        a, b = seed_estimates(per_seed_a), seed_estimates(per_seed_b)
+    except ValueError as error:  # different episode sets
+        raise MaplessError(f"cannot compare {label_a} with {label_b}: {error}") from None
+    rows = [
+        [
+            COLUMNS[k][0],
+            format_estimate(k, a[k]),
+            format_estimate(k, b[k]),
+            format_difference(k, differences[k]),
+        ]
+        for k in COMPARED
+    ]
+    return markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
 
 
 def write_json(payload: dict, path: Path) -> None:
