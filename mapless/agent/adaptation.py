@@ -11,6 +11,7 @@ to keep: the same fast weights follow from the same episode.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -89,11 +90,7 @@ class TestTimeAdaptation(FastWeightForward):
             # The fast weights are updated in place, so an inner step must not reach back into an
             # earlier chunk's graph (it acted with other weights): cut it at chunk starts.
             hidden, prev_policy = (hidden[0].detach(), hidden[1].detach()), prev_policy.detach()
-
-        def low_rank(inputs: Tensor) -> Tensor:
-            return apply_low_rank(inputs, state.left, state.right)
-
-        output, gates, inputs = self._forward(state, obs, hidden, prev_policy, low_rank)
+        output, gates, inputs = self._forward(state, obs, hidden, prev_policy, _low_rank_updates(state))
         state.chunk.append(Step(gates, inputs, state.ids, 0))
         return output
 
@@ -106,12 +103,8 @@ class TestTimeAdaptation(FastWeightForward):
     ) -> Tensor:
         """``[B]`` V of ``obs`` under each slot's current fast weights, without recording a step (the
         value a time-limit truncation is bootstrapped with)."""
-
-        def low_rank(inputs: Tensor) -> Tensor:
-            return apply_low_rank(inputs, state.left, state.right)
-
         with torch.no_grad():
-            output, _, _ = self._forward(state, obs, hidden, prev_policy, low_rank)
+            output, _, _ = self._forward(state, obs, hidden, prev_policy, _low_rank_updates(state))
         return output.value.reshape(-1)
 
     def observe(self, state: AdaptationState, output: ModelOutput, alive: Tensor) -> None:
@@ -150,3 +143,8 @@ class TestTimeAdaptation(FastWeightForward):
             state.left[slots[:, None], columns] = -self.inner_lr * delta[slots]
             state.right[slots[:, None], columns] = torch.stack([s.inputs for s in steps], dim=1)[slots]
             state.slot_updates[slots] += 1
+
+
+def _low_rank_updates(state: AdaptationState) -> Callable[[Tensor], Tensor]:
+    """``[x || h]`` -> each slot's accumulated low-rank update of the LSTM gates."""
+    return lambda inputs: apply_low_rank(inputs, state.left, state.right)
