@@ -2,7 +2,8 @@
 exactly the configuration the one-file-per-experiment-and-budget layout gave (captured in
 tests/data/experiment_configs_resolved.json before the split; since then only the small budget's
 imitation warm start and every baseline's target_context, the layout-shift experiment and the
-fields it added, Tables 2 and 3's moves to the PPO recipe and the medium budget), and the composition rules."""
+fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
+time-limit bootstrap), and the composition rules."""
 
 from __future__ import annotations
 
