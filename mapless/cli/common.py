@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,9 @@ def add_command(
     **parser_options: Any,
 ) -> argparse.ArgumentParser:
     """A sub-command that runs ``handler(args)``; ``sim`` gives it the simulator options
-    (:func:`add_sim_arguments`). ``parser_options`` go to ``add_parser`` (``help``, ``description``)."""
+    (:func:`add_sim_arguments`). ``parser_options`` go to ``add_parser`` (``help``, ``description``);
+    the description defaults to the handler's docstring, so the two cannot drift apart."""
+    parser_options.setdefault("description", inspect.getdoc(handler))
     parser = subparsers.add_parser(name, **parser_options)
     parser.set_defaults(func=handler)
     if sim:

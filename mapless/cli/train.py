@@ -13,13 +13,7 @@ from mapless.episodes.protocols import PROTOCOLS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = add_command(
-        subparsers,
-        "train",
-        _train,
-        help="train a model (batched or async A3C / meta-RL); writes a run folder",
-        description="Train a model. Under torchrun every rank runs this command (docs/training.md).",
-    )
+    parser = add_command(subparsers, "train", _train, help="train a model (PPO or A3C); writes a run folder")
     parser.add_argument("config", nargs="?", type=Path, help="YAML TrainConfig (experiments/train_*.yaml)")
     parser.add_argument(
         "--set",
@@ -50,6 +44,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
+    """Train a model: recurrent PPO, or the references' batched or async A3C (docs/training.md).
+    Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
     from mapless.train.config import TrainConfig
     from mapless.train.run import default_run_dir, resume_config, train

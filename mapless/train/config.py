@@ -289,30 +289,8 @@ def _finite(value: float) -> bool:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training run.
-
-    algo: ``ppo`` (recurrent PPO, :class:`PPOConfig`; batched mode) or ``a3c`` (the references'
-        recipe: one A3C step per batch of whole episodes, or per episode in async mode).
-    mode: ``batched`` (B episodes in lockstep, one update per batch) or ``async`` (the references'
-        Hogwild A3C: ``workers`` processes, one update per episode, shared AMSGrad Adam).
-    batch_size: episodes per update in batched mode (per rank under torchrun).
-    workers: worker processes in async mode.
-    episodes / frames: the budget; training stops when either is reached (0 = no limit on that one,
-        but one of them must be set).
-    max_seconds: also stop after this much wall-clock training time (0 = no limit; benchmarks and
-        the learning check use it; a resumed run gets the full amount again).
-    seed: seeds the episode sampler, the action noise and torch; every torchrun rank and async worker
-        draws its own streams from it (``seed_for``: a ``SeedSequence`` of the seed and the rank).
-    device: ``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU).
-    threads: torch threads of the batched trainer (0 = every core); async workers use 1 each.
-    precision: ``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast)
-        and the LSTM's weight products (forward, inner steps, weight gradient), where most of the
-        arithmetic is; parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`,
-        docs/training.md "Precision"). Opt-in.
-    checkpoint_every: episodes between checkpoints (a resumable one plus a model snapshot).
-    log_every: episodes between TensorBoard / metrics.jsonl records.
-    progress: show the tqdm bar.
-    """
+    """A training run: the model, its environment and learning settings (the nested configs), then
+    how it trains, its budget, where it runs and what it leaves behind (each field's text below)."""
 
     model: ModelConfig = field(default_factory=ModelConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -320,20 +298,46 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     meta: MetaConfig = field(default_factory=MetaConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+
     algo: Literal["a3c", "ppo"] = "a3c"
+    """``ppo`` (recurrent PPO, :class:`PPOConfig`; batched mode) or ``a3c`` (the references' recipe:
+    one A3C step per batch of whole episodes, or per episode in async mode)."""
     mode: Literal["batched", "async"] = "batched"
+    """``batched`` (B episodes in lockstep, one update per batch) or ``async`` (the references'
+    Hogwild A3C: ``workers`` processes, one update per episode, shared AMSGrad Adam)."""
     batch_size: int = 32
+    """Episodes per update in batched mode (per rank under torchrun)."""
     workers: int = 2
+    """Worker processes in async mode."""
+
     episodes: int = 0
+    """The budget in episodes; training stops when it or ``frames`` is reached (0 = no limit on this
+    one, but one of the two must be set)."""
     frames: int = 0
+    """The budget in frames (agent steps), as ``episodes``."""
     max_seconds: float = 0.0
+    """Also stop after this much wall-clock training time (0 = no limit; benchmarks and the budgets
+    use it; a resumed run gets the full amount again)."""
+
     seed: int = 1
+    """Seeds the episode sampler, the action noise and torch; every torchrun rank and async worker
+    draws its own streams from it (``seed_for``: a ``SeedSequence`` of the seed and the rank)."""
     device: str = "cpu"
+    """``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU)."""
     threads: int = 0
+    """Torch threads of the batched trainer (0 = every core); async workers use 1 each."""
     precision: Literal["fp32", "bf16"] = "fp32"
+    """``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast) and the
+    LSTM's weight products (forward, inner steps, weight gradient), where most of the arithmetic is;
+    parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`, docs/training.md
+    "Precision"). Opt-in."""
+
     checkpoint_every: int = 10_000
+    """Episodes between checkpoints (a resumable one plus a model snapshot)."""
     log_every: int = 100
+    """Episodes between TensorBoard / metrics.jsonl records."""
     progress: bool = True
+    """Show the tqdm bar."""
 
     def __post_init__(self) -> None:
         if self.model.name not in MODELS:
