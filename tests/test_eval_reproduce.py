@@ -401,3 +401,19 @@ def test_experiment_eval_settings_and_every_models_training_config_are_checked_o
         load_experiment(
             "table1", "smoke", overrides=["per_model.a3c.algo=ppo", "per_model.a3c.ppo.minibatches=999"]
         )
+
+
+def test_the_time_limit_bootstrap_names_a_run_folder_only_where_it_changes_training() -> None:
+    # Non-adaptive models bootstrap their segments anyway, and A3C ignores ppo.*: the setting leaves
+    # their folders (and so their finished runs) where they were.
+    experiment = load_experiment("table1", "small")
+
+    def folder(model: str, *overrides: str) -> Path:
+        config = load_experiment("table1", "small", overrides=list(overrides))
+        return run_dir_for(experiment, train_config(config, model, seed=1), "all")
+
+    off = "train.ppo.bootstrap_time_limit=false"
+    assert folder("a3c") == folder("a3c", off)
+    assert folder("savn", "train.algo=a3c") == folder("savn", "train.algo=a3c", off)
+    assert folder("cvmeta") != folder("cvmeta", off)
+    assert folder("savn") != folder("savn", off)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from mapless.config import to_dict
 from mapless.experiments.config import ExperimentConfig
+from mapless.models.registry import MODELS
 
 
 def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
@@ -22,11 +23,18 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     # Keys added after runs were made: hashed only when set, so that finished runs keep their folders.
     if train_cfg.env.layouts == type(train_cfg.env.layouts)():
         del data["env"]["layouts"]
-    if not train_cfg.ppo.bootstrap_time_limit:
+    # ... and only where it changes training: PPO's whole episodes, which only adaptive models play.
+    if not (
+        train_cfg.ppo.bootstrap_time_limit and train_cfg.algo == "ppo" and _adaptive(train_cfg.model.name)
+    ):
         del data["ppo"]["bootstrap_time_limit"]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
+
+
+def _adaptive(model: str) -> bool:
+    return MODELS[model].default_inner_lr is not None
 
 
 def planned_runs(config: ExperimentConfig) -> dict[str, int]:
