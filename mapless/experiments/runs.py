@@ -25,16 +25,14 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
         del data["env"]["layouts"]
     # ... and only where it changes training: PPO's whole episodes, which only adaptive models play.
     if not (
-        train_cfg.ppo.bootstrap_time_limit and train_cfg.algo == "ppo" and _adaptive(train_cfg.model.name)
+        train_cfg.ppo.bootstrap_time_limit
+        and train_cfg.algo == "ppo"
+        and MODELS[train_cfg.model.name].is_adaptive()
     ):
         del data["ppo"]["bootstrap_time_limit"]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
-
-
-def _adaptive(model: str) -> bool:
-    return MODELS[model].default_inner_lr is not None
 
 
 def planned_runs(config: ExperimentConfig) -> dict[str, int]:

@@ -139,9 +139,15 @@ class NavModel(nn.Module):
         return zeros, zeros.clone()
 
     # -- meta-learning interface (overridden by adaptive models) ---------------------------------
+    @classmethod
+    def is_adaptive(cls) -> bool:
+        """Whether the model adapts at test time (it has an inner learning rate); known before it
+        is built, as run folders need it."""
+        return cls.default_inner_lr is not None
+
     @property
     def adaptive(self) -> bool:
-        return self.default_inner_lr is not None
+        return self.is_adaptive()
 
     @property
     def inner_lr(self) -> float:
