@@ -164,5 +164,8 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: list[st
     return from_dict(cls, apply_overrides(data, overrides or []))
 
 
-def save_config(config: Any, path: str | Path) -> None:
-    write_text(path, yaml.safe_dump(to_dict(config), sort_keys=False))
+def save_config(config: Any, path: str | Path, comment: str = "") -> None:
+    """``config`` as YAML; ``comment`` goes above it as ``#`` lines, which loading ignores (the file
+    stays a config that ``load_config`` and ``mapless train`` read)."""
+    header = "".join(f"# {line}\n" for line in comment.splitlines())
+    write_text(path, header + yaml.safe_dump(to_dict(config), sort_keys=False))

@@ -17,6 +17,7 @@ import torch
 from mapless.cli import main
 from mapless.episodes import evalsets
 from mapless.experiments import RunTally, load_experiment, planned_runs, run_dir_for, train_config
+from mapless.provenance import provenance
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.episode import Episode
@@ -41,6 +42,12 @@ def make_episodes(library: SceneLibrary, scene: str, n: int, seed: int) -> list[
             pose = (float(data.x[start]), float(data.z[start]), int(data.yaw[start]), 0)
             out.append(Episode(scene, target, pose, d + 1, episode_id=f"{scene}/{len(out)}"))
     return out
+
+
+def _same_code(record: dict) -> bool:
+    """A report's provenance names this code and machine (the dirty flag aside: others may be editing)."""
+    here = provenance()
+    return all(record[key] == here[key] for key in ("commit", "version", "torch", "cores"))
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +105,7 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     md = (reports / "table1" / "table1.md").read_text()
     assert "| random |" in md and "| a3c |" in md and "SR L≥5" in md
     payload = json.loads((reports / "table1" / "table1.json").read_text())
+    assert _same_code(payload["provenance"]) and "Made by mapless" in md
     a3c = next(m for m in payload["models"] if m["model"] == "a3c")
     # The focus model (a3c here) minus each other model, on the same episodes.
     random = next(m for m in payload["models"] if m["model"] == "random")
@@ -121,6 +129,7 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert len(a3c["episodes"][0]) == 6 and {e["scene"] for e in a3c["episodes"][0]} == {"FloorPlan26"}
     run_dir = Path(a3c["runs"][0]["run_dir"])
     assert (run_dir / "eval" / "val_model_0000000008.json").is_file()
+    assert (run_dir / "config.yaml").read_text().startswith("# Trained by mapless")
 
     # Figures reuse the finished runs (no retraining) and write their PNGs.
     overrides = ["--set", "experiment=figure3"]
@@ -255,6 +264,8 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
     record = json.loads((out / "test.json").read_text())
     assert record["estimates"]["success"]["mean"] == 1.0 and record["estimates"]["spl"]["mean"] == 1.0
     assert "| oracle | 100.0" in (out / "test.md").read_text()
+    # Where the numbers came from: the commit, versions, threads and cores (mapless.provenance).
+    assert _same_code(record["provenance"]) and "Made by mapless" in (out / "test.md").read_text()
     runs = sorted((root / "runs").glob("a3c__*"))
     if runs:  # the run of the reproduce test: select on val, report on test, with 2 workers
         val = ["--episodes", str(root / "test.json.gz")]

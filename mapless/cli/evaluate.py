@@ -104,10 +104,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _eval(args: argparse.Namespace) -> int:
     from mapless.evaluate.metrics import aggregate
-    from mapless.evaluate.report import details_table, model_record, model_table, room_table, write_json
+    from mapless.evaluate.report import (
+        details_table,
+        model_record,
+        model_table,
+        room_table,
+        write_report_files,
+    )
     from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
     from mapless.evaluate.selection import evaluate_run, load_episodes
-    from mapless.files import write_text
 
     path = Path(args.model)
     settings = EvalSettings(
@@ -175,7 +180,6 @@ def _eval(args: argparse.Namespace) -> int:
     results, seconds, steps = run.results, run.seconds, run.steps
     meta["steps_per_second"] = steps / seconds if seconds else None
     record = model_record(label, [results], meta)
-    write_json(record, out / f"{eval_split}.json")
     text = "\n".join(
         [
             f"# {label} on {eval_split} ({len(results)} episodes)",
@@ -190,7 +194,7 @@ def _eval(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    write_text(out / f"{eval_split}.md", text)
+    _, text = write_report_files(record, text, out / eval_split)
     print(text)
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "

@@ -242,6 +242,19 @@ def comparison_table(
     return markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
 
 
+def write_report_files(payload: dict, text: str, stem: Path) -> tuple[dict, str]:
+    """Write a report as ``<stem>.json`` and ``<stem>.md``, each with the provenance of the code and
+    machine that made it (:mod:`mapless.provenance`); returns the two as written."""
+    from mapless.provenance import describe, provenance
+
+    record = provenance()
+    payload = {**payload, "provenance": record}
+    text = f"{text.rstrip()}\n\nMade by {describe(record)}.\n"
+    write_json(payload, stem.parent / f"{stem.name}.json")
+    write_text(stem.parent / f"{stem.name}.md", text)
+    return payload, text
+
+
 def write_json(payload: dict, path: Path) -> None:
     write_text(path, json.dumps(payload, indent=1, allow_nan=True))
 

@@ -18,11 +18,10 @@ from mapless.evaluate.report import (
     markdown,
     model_table,
     room_table,
-    write_json,
+    write_report_files,
 )
 from mapless.experiments.config import ROOM_ABBREV
 from mapless.experiments.records import Figure3, Figures45, LayoutShift, Setting, Table1, Table2, Table3
-from mapless.files import write_text
 
 #: What a renderer returns: the JSON payload and the markdown lines (figures are written on the way).
 Rendered = tuple[dict, list[str]]
@@ -33,10 +32,8 @@ def write_report(experiment: str, record: object, out: Path, command: str) -> di
     returns the payload and the markdown."""
     renderer: Callable[..., Rendered] = RENDERERS[type(record)]
     payload, lines = renderer(experiment, record, out, command)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(payload, out / f"{experiment}.json")
-    write_text(out / f"{experiment}.md", "\n".join(lines))
-    return {"payload": payload, "markdown": "\n".join(lines)}
+    payload, text = write_report_files(payload, "\n".join(lines), out / experiment)
+    return {"payload": payload, "markdown": text}
 
 
 def _header(setting: Setting, title: str, command: str) -> list[str]:

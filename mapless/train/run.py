@@ -12,6 +12,7 @@ from pathlib import Path
 from mapless import checkpoint as ckpt
 from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.errors import MaplessError
+from mapless.provenance import provenance_comment
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.builders import LibraryFactory, prepare_scenes
@@ -120,7 +121,7 @@ def train(
             run_dir.mkdir(parents=True, exist_ok=True)
             stack.enter_context(run_folder_lock(run_dir))
             remove_torn_writes(run_dir)
-            save_config(config, run_dir / ckpt.CONFIG_FILE)
+            save_config(config, run_dir / ckpt.CONFIG_FILE, provenance_comment(config.threads or None))
         if library_factory is None and ctx.local_rank == 0:
             prepare_scenes(config)  # once per machine: each has its own scene cache
         dist.barrier(ctx)
