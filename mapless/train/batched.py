@@ -23,7 +23,7 @@ from mapless.agent.acting import observation_keys
 from mapless.train import distributed as dist
 from mapless.train.builders import BuiltinLibrary, LibraryFactory, new_model, training_env, training_sampler
 from mapless.train.config import TrainConfig
-from mapless.train.gradients import check_finite, clip_gradients, fill_missing_gradients, trainable
+from mapless.train.gradients import clip_gradients, fill_missing_gradients, trainable
 from mapless.train.loop import TrainingLoop
 from mapless.train.monitor import RunMonitor
 from mapless.train.optim import SharedAdam
@@ -48,6 +48,7 @@ class BatchedTrainer(TrainingLoop):
         cached built-in scenes (tests pass small hand-made ones)."""
         self.ctx = ctx or dist.DistContext()
         super().__init__(config, run_dir if self.ctx.is_main else None)
+        self.has_run_folder = run_dir is not None  # rank 0 writes the checkpoints of every rank
         self.library_factory = library_factory or BuiltinLibrary(config)
         self.device = dist.rank_device(config.device, self.ctx.local_rank)
         self._time_up = False  # the wall-clock limit, as last agreed over ranks
@@ -119,7 +120,7 @@ class BatchedTrainer(TrainingLoop):
         fill_missing_gradients(self.model)
         dist.all_reduce_gradients(self.params, self.ctx)
         grad_norm = clip_gradients(self.model, cfg)
-        check_finite(grad_norm, self.counters)
+        self._check_finite(grad_norm)
         self.optimizer.step()
         return {"trajectory": trajectory, "losses": losses, "grad_norm": grad_norm}
 

@@ -25,15 +25,28 @@ def clip_gradients(model: NavModel, config: TrainConfig) -> float:
     return float(norm)
 
 
-def check_finite(norm: float, counters: dict[str, int]) -> None:
-    """Stop a run whose gradient is NaN or infinite, before the optimizer step spreads it."""
-    if not np.isfinite(norm):
+def check_finite(norm: float, counters: dict[str, int], saved: dict[str, int] | None) -> None:
+    """The divergence rule of every trainer (batched A3C, PPO, each Hogwild worker, each torchrun rank
+    on the all-reduced gradient): a NaN or infinite gradient norm stops the run before the optimizer
+    step would spread it into the parameters. ``counters`` say where the run is; ``saved`` are the
+    counters of the last checkpoint written (None: there is none), which the message names as what is
+    left, so that it never promises a checkpoint the run did not write."""
+    if np.isfinite(norm):
+        return
+    where = (
+        f"the gradient became {norm} at update {counters['updates'] + 1} "
+        f"({counters['episodes']} episodes, {counters['frames']} frames): training diverged"
+    )
+    advice = "lower the learning rate, or check the reward and loss settings"
+    if saved is None:
         raise TrainingDiverged(
-            f"the gradient became {norm} at update {counters['updates'] + 1} "
-            f"({counters['episodes']} episodes, {counters['frames']} frames): training diverged; the run "
-            "folder's checkpoint.pt still holds the last good state (lower the learning rate, or check the "
-            "reward and loss settings, before resuming)"
+            f"{where} before the run wrote its first checkpoint, so there is nothing to resume ({advice}, "
+            "then start the run again)"
         )
+    raise TrainingDiverged(
+        f"{where}; the run folder's checkpoint.pt still holds the last good state, at {saved['episodes']} "
+        f"episodes ({advice} before resuming)"
+    )
 
 
 def trainable(model: NavModel) -> list[torch.Tensor]:

@@ -10,7 +10,9 @@ worker loops::
     backward the episode's A3C loss (through the inner loop for adaptive models)
     clip (non-adaptive models, norm 100), hand the gradients to the shared parameters, optimizer step
 
-without locks, as the references do. A worker that raises or dies (even by SIGKILL) is reported by
+without locks, as the references do. A worker whose gradient is NaN or infinite (the divergence
+rule of every trainer, :func:`~mapless.train.gradients.check_finite`) reports it instead of
+stepping, and the trainer stops the run with the rule's error. A worker that raises or dies (even by SIGKILL) is reported by
 rank, pid and exit code, and the run stops: the main process polls the workers' exit codes while it
 waits for statistics, so it never blocks on a dead worker.
 
@@ -34,7 +36,7 @@ import torch
 import torch.multiprocessing as mp
 
 from mapless.agent.acting import observation_keys
-from mapless.errors import MaplessError
+from mapless.errors import MaplessError, TrainingDiverged
 from mapless.train.builders import (
     BuiltinLibrary,
     LibraryFactory,
@@ -43,13 +45,15 @@ from mapless.train.builders import (
     training_sampler,
 )
 from mapless.train.config import TrainConfig
-from mapless.train.gradients import clip_gradients, fill_missing_gradients, trainable
+from mapless.train.gradients import check_finite, clip_gradients, fill_missing_gradients, trainable
 from mapless.train.loop import TrainingLoop
 from mapless.train.optim import SharedAdam
 from mapless.train.rollout import accumulate_gradients, make_actor, run_batch
 from mapless.train.runtime import configure_torch, seed_for
 
 POLL_SECONDS = 0.2
+#: A worker applies the divergence rule without the run's counters (the trainer reports them).
+_UNCOUNTED = {"updates": 0, "episodes": 0, "frames": 0}
 JOIN_SECONDS = 10.0
 
 
@@ -96,6 +100,14 @@ def _worker(
             losses = accumulate_gradients(actor, trajectory, config.loss)
             fill_missing_gradients(local)
             grad_norm = clip_gradients(local, config)
+            try:
+                check_finite(grad_norm, _UNCOUNTED, None)
+            except TrainingDiverged:
+                # No step: the shared parameters stay finite. The trainer stops the run on this
+                # report with the rule's message at its own counters and checkpoint, which the
+                # worker does not know.
+                results.put(("diverged", rank, grad_norm))
+                continue
             for lp, sp in zip(local_params, shared_params, strict=True):
                 sp.grad = lp.grad
             optimizer.step()
@@ -238,6 +250,8 @@ class AsyncTrainer(TrainingLoop):
             return False
         if kind == "error":
             raise WorkerError(f"worker {rank} failed; the run was stopped:\n{payload}")
+        if kind == "diverged":
+            self._check_finite(payload)  # raises: the worker's gradient was not finite
         self._account(payload)
         self._check_workers()
         return False

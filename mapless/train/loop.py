@@ -13,6 +13,7 @@ from typing import Any
 
 from mapless import checkpoint as ckpt
 from mapless.train.config import TrainConfig
+from mapless.train.gradients import check_finite
 from mapless.train.monitor import RunMonitor, run_summary
 from mapless.train.runtime import GracefulStop
 
@@ -31,6 +32,10 @@ class TrainingLoop(abc.ABC):
         self._clock = time.perf_counter()
         self._snapshot_due = False  # the last update crossed a checkpoint_every boundary, not yet written
         self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
+        # Whether the run has a folder its checkpoints go to (written by rank 0 alone under torchrun,
+        # whose other ranks have no run_dir), and the counters of the last checkpoint there.
+        self.has_run_folder = run_dir is not None
+        self.saved: dict[str, int] | None = None
 
     # -- what a trainer supplies -----------------------------------------------------------------
     @abc.abstractmethod
@@ -70,20 +75,25 @@ class TrainingLoop(abc.ABC):
 
     def _checkpoint(self, final: bool = False, snapshot: bool = True) -> None:
         rngs, world_size = self._rng_states()  # may be collective: every rank gets here
-        if self.run_dir is None:
-            return
-        ckpt.save_run_state(
-            self.run_dir,
-            self.model,
-            self.optimizer,
-            self.config,
-            self.counters,
-            rngs,
-            world_size,
-            final,
-            snapshot,
-            self.monitor.state() if self.monitor is not None else None,
-        )
+        if self.run_dir is not None:
+            ckpt.save_run_state(
+                self.run_dir,
+                self.model,
+                self.optimizer,
+                self.config,
+                self.counters,
+                rngs,
+                world_size,
+                final,
+                snapshot,
+                self.monitor.state() if self.monitor is not None else None,
+            )
+        if self.has_run_folder:
+            self.saved = dict(self.counters)
+
+    def _check_finite(self, grad_norm: float) -> None:
+        """The divergence rule (:func:`~mapless.train.gradients.check_finite`) at this run's counters."""
+        check_finite(grad_norm, self.counters, self.saved)
 
     def _count(self, episodes: int, frames: int, stop_requested: bool = False) -> bool:
         """Advance the counters by one update's episodes and frames (over all ranks), log, and
@@ -107,6 +117,8 @@ class TrainingLoop(abc.ABC):
         """Train until the budget or a graceful stop; ``resume`` is a loaded checkpoint
         (:func:`checkpoint.load_file`). Returns :func:`~mapless.train.monitor.run_summary`."""
         self._setup(resume)
+        if resume is not None and self.has_run_folder:
+            self.saved = dict(self.counters)  # the checkpoint resumed from
         monitor = self.monitor = RunMonitor.for_run(
             self.run_dir, self.config, self.counters, self.label, resume
         )

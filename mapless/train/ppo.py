@@ -42,7 +42,7 @@ from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.builders import new_model, training_env, training_sampler
-from mapless.train.gradients import check_finite, trainable
+from mapless.train.gradients import trainable
 from mapless.train.monitor import RunMonitor
 from mapless.train.ppo_loss import PPOLoss, gae, ppo_loss
 from mapless.train.runtime import configure_torch, seed_for
@@ -245,7 +245,7 @@ class PPOTrainer(BatchedTrainer):
         dist.all_reduce_gradients(self.params, self.ctx)
         params = [p for p in self.params if p.grad is not None]
         norm = torch.nn.utils.get_total_norm([p.grad for p in params])
-        check_finite(float(norm), self.counters)
+        self._check_finite(float(norm))
         if self.config.ppo.max_grad_norm > 0:
             torch.nn.utils.clip_grads_with_norm_(params, self.config.ppo.max_grad_norm, norm)
         self.optimizer.step()
