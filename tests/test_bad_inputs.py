@@ -8,6 +8,7 @@ import json
 import pickle
 import re
 import shutil
+from pathlib import Path
 
 import pytest
 from scene_fixtures import grid_scene
@@ -251,3 +252,13 @@ def test_the_cache_folder_deleted_during_a_build(tmp_path, monkeypatch):
     data = cache.load_or_build(SCENE, FAST, tmp_path)
     monkeypatch.undo()
     assert cache.load(folder / f"{SCENE}.npz", FAST).n_poses == data.n_poses  # written all the same
+
+
+def test_a_negative_seed_is_a_config_error_naming_the_key(tmp_path, capsys):
+    """numpy's SeedSequence refuses it with a bare traceback (issue 45, points 1 and 14)."""
+    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    runs = tmp_path / "runs"
+    err = error_of(["train", smoke, "--set", "seed=-1", "--runs-root", str(runs)], capsys)
+    assert "config key 'seed': must be >= 0" in err and not runs.exists()
+    err = error_of(["reproduce", "table1", "--set", "eval.seed=-1", "--reports", str(tmp_path)], capsys)
+    assert "config key 'eval.seed': must be >= 0" in err

@@ -78,12 +78,21 @@ def parse_pose(text: str) -> tuple[float, float, int, int]:
         raise argparse.ArgumentTypeError(f"pose {text!r} must be x,z,yaw,horizon (numbers)") from None
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1 (a batch size, a worker or episode count)."""
+def _int_at_least(text: str, minimum: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (a batch size, a worker or episode count)."""
+    return _int_at_least(text, 1)
+
+
+def seed_int(text: str) -> int:
+    """An argparse type: an integer >= 0 (a seed: numpy's seed sequences take no negative one)."""
+    return _int_at_least(text, 0)

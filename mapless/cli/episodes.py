@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import add_command, sim_config_from
+from mapless.cli.common import add_command, seed_int, sim_config_from
 from mapless.episodes import evalsets
 from mapless.errors import MaplessError
 
@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     make.add_argument("--target-set", default="mjolnir22")
     make.add_argument("--per-room", type=int, default=250)
-    make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--seed", type=seed_int, default=0)
     make.add_argument("--out", type=Path, default=Path("episodes"))
     make.add_argument(
         "--check", action="store_true", help="also compare with the built-in files byte for byte"

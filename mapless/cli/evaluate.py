@@ -9,7 +9,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from mapless.cli.common import add_command, positive_int
+from mapless.cli.common import add_command, positive_int, seed_int
 from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
 from mapless.experiments.config import BUDGETS, EXPERIMENTS
@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     ev.add_argument("--workers", type=positive_int, default=2)
     ev.add_argument("--batch-size", type=positive_int, default=32)
-    ev.add_argument("--seed", type=int, default=0, help="action-sampling seed")
+    ev.add_argument("--seed", type=seed_int, default=0, help="action-sampling seed (>= 0)")
     ev.add_argument(
         "--greedy", action="store_true", help="argmax actions instead of sampling (the references sample)"
     )
@@ -70,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers,
         "compare",
         _compare,
-        help="B minus A on the same episodes: SR, SPL, L>=5 and false Done, with paired 95 % intervals",
+        help="B minus A on the same episodes: SR, SPL, L>=5 and false Done, with paired 95 %% intervals",
         description="Each side is a result file: a run's evaluation (RUN/eval/*.json), a `mapless eval` "
         "record (SPLIT.json), or REPORT.json:MODEL of an experiment report. Prints a markdown table.",
     )

@@ -60,6 +60,10 @@ class ExperimentEval:
             value = getattr(self, key)
             if not isinstance(value, int) or value < 1:
                 raise ConfigError(f"config key 'eval.{key}': must be an integer >= 1, got {value!r}")
+        if self.seed < 0:
+            raise ConfigError(
+                f"config key 'eval.seed': must be >= 0 (numpy seeds are non-negative), got {self.seed}"
+            )
         from mapless.episodes.evalsets import parse_layouts
 
         try:

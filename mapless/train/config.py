@@ -356,6 +356,7 @@ class TrainConfig:
             f"must be finite and >= 0, got {self.max_seconds}",
         )
         _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
+        _require(self.seed >= 0, "seed", f"must be >= 0 (numpy seeds are non-negative), got {self.seed}")
         _require(
             self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
         )
