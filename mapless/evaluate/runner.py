@@ -52,13 +52,15 @@ from mapless.sim.vector import BatchedNavEnv, BatchStep
 class AgentSpec:
     """How a worker builds its agent: ``oracle``; a registered model (``model`` = ModelConfig fields,
     weights from ``checkpoint`` or fresh with ``init_seed``); or ``factory`` = ``"module:function"``
-    called as ``function(batch_size, bf16)``."""
+    called as ``function(batch_size, bf16)``. ``adapt``: an adaptive model's test-time adaptation;
+    False runs its trained θ_0 as a plain recurrent policy (the cvmeta ablation's row a)."""
 
     kind: str = "model"
     model: dict = field(default_factory=dict)
     checkpoint: str | None = None
     init_seed: int = 0
     factory: str | None = None
+    adapt: bool = True
 
     @property
     def label(self) -> str:
@@ -73,7 +75,7 @@ class AgentSpec:
         if self.kind == "factory":
             return _import(self.factory)(batch_size, bf16)
         model = load_model(self)
-        if model.adaptive:
+        if model.adaptive and self.adapt:
             return AdaptiveModelAgent(model, batch_size)
         return ModelAgent(model, batch_size, bf16)
 

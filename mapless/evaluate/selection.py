@@ -146,7 +146,10 @@ def cached_evaluate(
     """Evaluate, reusing ``cache`` when it holds the same checkpoint, episodes and settings."""
     # Results do not depend on the worker count (tests/test_eval_runner.py), so it is not in the key.
     settings_key = {k: v for k, v in asdict(settings).items() if k != "workers"}
-    key = {"spec": asdict(spec), "episodes": episodes_digest(episodes), "settings": settings_key}
+    spec_key = asdict(spec)
+    if spec.adapt:  # added later: keyed only when off, so earlier caches still hit
+        del spec_key["adapt"]
+    key = {"spec": spec_key, "episodes": episodes_digest(episodes), "settings": settings_key}
     if spec.checkpoint:  # a resumed run rewrites final_model.pt under the same name
         stat = Path(spec.checkpoint).stat()
         key["model_file"] = [stat.st_size, stat.st_mtime_ns]

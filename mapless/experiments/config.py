@@ -21,7 +21,7 @@ from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
 
-EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45", "layout_shift")
+EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45", "layout_shift", "ablation")
 BUDGETS = ("smoke", "small", "medium", "full")
 ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
 
@@ -33,7 +33,9 @@ class ExperimentEval:
     protocol: ``standard`` (select on val, report on test), ``paper`` (select and report on x21-x30)
         or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30; its
         runs train under the 1.5 m rule too); mapless.episodes.protocols.
-    per_room: the first N episodes per room type of the fixed sets (250 = all).
+    per_room: the first N episodes per room type of the fixed sets (250 = all of the built-in ones).
+    select_per_room: the first N per room type of the selection set (None: ``per_room``); selection
+        may read a subset while the report reads every episode.
     select: evaluate every checkpoint and select (False: the final model only).
     select_file / report_file: episode files replacing the built-in val / test sets (tests).
     shift_layouts: the layout-shift experiment's arrangements of the report split (SOURCE:PER_SCENE,
@@ -44,6 +46,7 @@ class ExperimentEval:
 
     protocol: Literal["standard", "paper", "reference"] = "standard"
     per_room: int = 250
+    select_per_room: int | None = None
     rooms: tuple[str, ...] = ROOM_TYPES
     select: bool = True
     select_file: str | None = None
@@ -56,8 +59,10 @@ class ExperimentEval:
     greedy: bool = False
 
     def __post_init__(self) -> None:
-        for key in ("per_room", "batch_size", "workers"):
+        for key in ("per_room", "batch_size", "workers", "select_per_room"):
             value = getattr(self, key)
+            if key == "select_per_room" and value is None:
+                continue
             if not isinstance(value, int) or value < 1:
                 raise ConfigError(f"config key 'eval.{key}': must be an integer >= 1, got {value!r}")
         if self.seed < 0:
@@ -70,6 +75,31 @@ class ExperimentEval:
             parse_layouts(self.shift_layouts)
         except MaplessError as error:
             raise ConfigError(f"config key 'eval.shift_layouts': {error}") from None
+
+
+@dataclass(frozen=True)
+class AblationRow:
+    """One row of the ablation experiment: the focus model changed one way.
+
+    what: the row's one-line description (its label in the report).
+    train: TrainConfig overrides of the row's runs (nested mapping, merged over the focus model's
+        training config); empty: the focus model's own runs, evaluated differently.
+    test_time_adaptation: False evaluates the row's chosen snapshot without test-time adaptation.
+    seeds: the row's training seeds (None: the experiment's).
+    """
+
+    what: str
+    train: dict = field(default_factory=dict)
+    test_time_adaptation: bool = True
+    seeds: int | None = None
+
+    def __post_init__(self) -> None:
+        if not self.train and self.test_time_adaptation:
+            raise ConfigError(
+                f"ablation row {self.what!r} changes nothing (no train overrides, adaptation on)"
+            )
+        if self.seeds is not None and self.seeds < 1:
+            raise ConfigError(f"ablation row {self.what!r}: seeds must be >= 1, got {self.seeds}")
 
 
 @dataclass(frozen=True)
@@ -87,6 +117,9 @@ class ExperimentConfig:
         training floor plans of the room).
     variant_layouts: the layout-shift experiment's second row: ``train.env.layouts`` of the runs
         trained on scene variants (mapless.train.config.LayoutsConfig).
+    ablations: the ablation experiment's rows, ``{name: AblationRow fields}``, each the focus model
+        changed one way and compared with the focus model's own runs.
+    ablation_rows: the rows to run (names of ``ablations``; empty: all), e.g. one lane of two.
     """
 
     experiment: str = "table1"
@@ -102,6 +135,8 @@ class ExperimentConfig:
     gif: bool = True
     single_room_scenes: dict = field(default_factory=dict)
     variant_layouts: dict = field(default_factory=lambda: {"source": "rearrange2023", "fraction": 0.5})
+    ablations: dict = field(default_factory=dict)
+    ablation_rows: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.experiment not in EXPERIMENTS:
@@ -116,6 +151,19 @@ class ExperimentConfig:
         for room in (*self.rooms, *self.eval.rooms):
             if room not in ROOM_TYPES:
                 raise UnknownNameError("room type", room, ROOM_TYPES)
+        for name in self.ablation_rows:
+            if name not in self.ablations:
+                raise UnknownNameError("ablation row", name, tuple(self.ablations))
+        self.ablation_table()  # each row's fields are checked here
+
+    def ablation_table(self) -> dict[str, AblationRow]:
+        """The ablation rows to run, by name, in the config's order."""
+        rows = {}
+        for name, fields in self.ablations.items():
+            if not isinstance(fields, dict):
+                raise ConfigError(f"config key 'ablations.{name}': expected a mapping, got {fields!r}")
+            rows[name] = from_dict(AblationRow, fields, prefix=f"ablations.{name}.")
+        return {n: r for n, r in rows.items() if not self.ablation_rows or n in self.ablation_rows}
 
 
 def _experiments_dir() -> Path:
@@ -136,10 +184,27 @@ def read_experiment(path: Path, overrides: list[str] | None = None) -> Experimen
     """The experiment file at ``path`` read over the file of the budget it names (a file naming no
     budget stands alone), then ``overrides``. The runs' training configs are not checked here
     (:func:`load_experiment` does)."""
-    data = read_mapping(path)
+    data = _experiment_mapping(path)
     if "budget" in data:
         data = {**read_budget(data["budget"]), **data}
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
+
+
+def _experiment_mapping(path: Path, _extending: tuple[Path, ...] = ()) -> dict:
+    """An experiment file's mapping; one that says ``extends: OTHER.yaml`` (a file beside it) is read
+    over that file's mapping, each top-level key replacing the other's, so that an experiment at a
+    second budget states only what differs (``ablation_medium.yaml``: the budget)."""
+    data = read_mapping(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    chain = (*_extending, path)
+    base_path = path.parent / str(base)
+    if base_path in chain:
+        raise ConfigError(f"{path}: experiment files cannot extend in a circle")
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: 'extends: {base}' names no file beside it")
+    return {**_experiment_mapping(base_path, chain), **data}
 
 
 def read_budget(budget: str, directory: Path | None = None, _extending: tuple[str, ...] = ()) -> dict:
@@ -183,6 +248,12 @@ def load_experiment(
         train_config(config, model, 1)
         if config.experiment == "layout_shift":
             train_config(config, model, 1, {"env": {"layouts": config.variant_layouts}})
+    if config.experiment == "ablation":
+        for name, row in config.ablation_table().items():
+            try:
+                train_config(config, config.focus, 1, row.train)
+            except ConfigError as error:
+                raise ConfigError(f"ablation row {name!r}: {error}") from None
     return config
 
 

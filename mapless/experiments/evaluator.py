@@ -39,12 +39,15 @@ class Evaluator:
         self.settings = EvalSettings(batch_size=e.batch_size, workers=e.workers, seed=e.seed, greedy=e.greedy)
         self.scenes, target_set = experiment_scenes(self.config)
         self._untrained: dict[str, tuple[list[EpisodeResult], dict]] = {}
-        sets = {"per_room": e.per_room, "rooms": e.rooms, "library": self.scenes, "target_set": target_set}
-        self.select_episodes = load_episodes(protocol.select_split, e.select_file, **sets)
+        sets = {"rooms": e.rooms, "library": self.scenes, "target_set": target_set}
+        select_per_room = e.select_per_room or e.per_room
+        self.select_episodes = load_episodes(
+            protocol.select_split, e.select_file, per_room=select_per_room, **sets
+        )
         self.report_episodes = (
             self.select_episodes
-            if protocol.select_split == protocol.report_split
-            else load_episodes(protocol.report_split, e.report_file, **sets)
+            if protocol.select_split == protocol.report_split and select_per_room == e.per_room
+            else load_episodes(protocol.report_split, e.report_file, per_room=e.per_room, **sets)
         )
 
     @functools.cached_property
@@ -74,13 +77,15 @@ class Evaluator:
         train_cfg=None,
         checkpoint: str | None = None,
         cache: Path | None = None,
+        adapt: bool = True,
     ) -> list[EpisodeResult]:
         """One agent (an untrained ``model``, or a ``checkpoint`` of a run) on other ``episodes``;
-        ``cache``: a file that keeps the results for the same checkpoint, episodes and settings."""
+        ``cache``: a file that keeps the results for the same checkpoint, episodes and settings;
+        ``adapt``: test-time adaptation of an adaptive model (False: its θ_0, never adapted)."""
         if checkpoint is None:
             return evaluate(AgentSpec(model={"name": model}), episodes, self.settings, self.scenes).results
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
-        spec, library = AgentSpec(checkpoint=checkpoint), self.library(train_cfg)
+        spec, library = AgentSpec(checkpoint=checkpoint, adapt=adapt), self.library(train_cfg)
         return cached_evaluate(spec, episodes, settings, library, cache).results
 
     def library(self, train_cfg) -> LibrarySpec:

@@ -12,6 +12,7 @@ from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
 from mapless.experiments.records import (
+    Ablation,
     Figure3,
     Figures45,
     LayoutShift,
@@ -29,13 +30,14 @@ from mapless.scenes.catalogue import ROOM_TYPES
 
 
 def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, variant: str = "all",
-                   extra: dict | None = None, log: Callable[[str], None] = print) -> tuple[PerSeed, list[dict]]:  # fmt: skip
+                   extra: dict | None = None, log: Callable[[str], None] = print,
+                   seeds: int | None = None) -> tuple[PerSeed, list[dict]]:  # fmt: skip
     """Per-seed report results of one model (trained per seed, or untrained for ``random``)."""
     per_seed, meta = [], []
     if model == "random":
         results, info = ev.untrained(model)
         return [results], [info]
-    for s in range(config.seeds):
+    for s in range(seeds or config.seeds):
         cfg = train_config(config, model, seed=1 + s, extra=extra)
         run_dir = run_dir_for(config, cfg, variant)
         tally.start(model, f"{variant}, seed {1 + s}")
@@ -120,6 +122,47 @@ def table3(config: ExperimentConfig, log: Callable[[str], None]) -> Table3:
             }
         records.append(rec)
     return Table3(_setting(config, ev), records)
+
+
+def ablation(config: ExperimentConfig, log: Callable[[str], None]) -> Ablation:
+    """The focus model, then each row of ``config.ablations``: trained with the row's overrides
+    (its own runs), or the focus model's chosen snapshots evaluated without test-time adaptation;
+    every row minus the focus model, paired over the same episodes and seeds."""
+    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    focus = config.focus
+    log(f"{focus}:")
+    # The unablated model is Table 1's run (variant "all", same configuration): trained once.
+    full, full_meta = _model_results(config, ev, tally, focus, log=log)
+    records = [model_record(focus, full, {"runs": full_meta, "row": "focus"})]
+    for name, row in config.ablation_table().items():
+        log(f"{focus}, {name} ({row.what}):")
+        if row.train:
+            per_seed, meta = _model_results(
+                config, ev, tally, focus, f"ablation-{name}", row.train, log, row.seeds
+            )
+            baseline = full[: len(per_seed)]
+        else:
+            per_seed, meta, baseline = [], [], full
+        if not row.test_time_adaptation:
+            runs = meta or full_meta
+            per_seed = [_unadapted(config, ev, focus, name, row, run, 1 + s) for s, run in enumerate(runs)]
+            meta = [{"run_dir": run["run_dir"], "model_file": ev.chosen_model(Path(run["run_dir"]), run)}
+                    for run in runs]  # fmt: skip
+        rec = model_record(f"{focus}: {row.what}", per_seed, {"runs": meta, "row": name, "what": row.what})
+        # Paired over the focus model's seeds of the same numbers (a one-seed row: the first seed).
+        rec["minus_focus"] = difference_record(baseline[: len(per_seed)], per_seed)
+        records.append(rec)
+    return Ablation(_setting(config, ev), records)
+
+
+def _unadapted(
+    config: ExperimentConfig, ev: Evaluator, focus: str, name: str, row, run: dict, seed: int
+) -> list:
+    """A run's chosen snapshot on the report episodes, never adapted at test time."""
+    cfg = train_config(config, focus, seed=seed, extra=row.train or None)
+    chosen = ev.chosen_model(Path(run["run_dir"]), run)
+    cache = Path(run["run_dir"]) / "eval" / f"unadapted_{Path(chosen).stem}_{len(ev.report_episodes)}.json"
+    return ev.on(ev.report_episodes, focus, cfg, chosen, cache, adapt=False)
 
 
 def figure3(config: ExperimentConfig, log: Callable[[str], None]) -> Figure3:
@@ -235,6 +278,7 @@ PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]
     "figure3": figure3,
     "figures45": figures45,
     "layout_shift": layout_shift,
+    "ablation": ablation,
 }
 
 

@@ -61,6 +61,16 @@ class Table3:
 
 
 @dataclass
+class Ablation:
+    """The focus model (its Table 1 runs), then each ablation row: the focus model changed one way,
+    each row's record with ``row``, ``what`` and ``minus_focus``, its difference from the focus
+    model paired over the same episodes."""
+
+    setting: Setting
+    models: list[dict]
+
+
+@dataclass
 class Figure3:
     """Ratio of exploration of Table 1's models."""
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from mapless.config import to_dict
 from mapless.evaluate.report import (
     COLUMNS,
+    COMPARED,
     MAIN_COLUMNS,
     ROOM_NAMES,
     details_table,
@@ -21,7 +22,16 @@ from mapless.evaluate.report import (
     write_report_files,
 )
 from mapless.experiments.config import ROOM_ABBREV
-from mapless.experiments.records import Figure3, Figures45, LayoutShift, Setting, Table1, Table2, Table3
+from mapless.experiments.records import (
+    Ablation,
+    Figure3,
+    Figures45,
+    LayoutShift,
+    Setting,
+    Table1,
+    Table2,
+    Table3,
+)
 
 #: What a renderer returns: the JSON payload and the markdown lines (figures are written on the way).
 Rendered = tuple[dict, list[str]]
@@ -169,6 +179,30 @@ def _ablation_cells(minus_full: dict, room: str) -> list[str]:
     return [format_difference(c, minus_full[part][c]) for part in ("all", room) for c in ("success", "spl")]
 
 
+def ablation(experiment: str, record: Ablation, out: Path, command: str) -> Rendered:
+    records, focus = record.models, record.setting.config.focus
+    lines = _header(
+        record.setting, f"Ablation: what each part of {focus} and of its recipe is worth", command
+    )
+    differences = [
+        [rec["row"], rec["what"], *(format_difference(c, rec["minus_focus"][c]) for c in COMPARED)]
+        for rec in records
+        if "minus_focus" in rec
+    ]
+    lines += [
+        model_table(records),
+        "",
+        f"Each row minus {focus}, in points, with the 95 % interval of the difference over episodes "
+        f"(paired: the same episodes, and {focus}'s seeds of the same numbers):",
+        "",
+        markdown(["row", "change", *(f"Δ {COLUMNS[c][0]}" for c in COMPARED)], differences),
+        "",
+    ]
+    lines += _validation_curves(records, out / f"{experiment}_validation.png")
+    lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
+    return _payload(experiment, record.setting, models=records), lines
+
+
 def figure3(experiment: str, record: Figure3, out: Path, command: str) -> Rendered:
     from mapless.evaluate.figures import exploration_figure
 
@@ -275,4 +309,5 @@ RENDERERS: dict[type, Callable[..., Rendered]] = {
     Figure3: figure3,
     Figures45: figures45,
     LayoutShift: layout_shift,
+    Ablation: ablation,
 }

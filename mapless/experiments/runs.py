@@ -20,19 +20,38 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
     (the progress bar aside), so experiments with an identical run share it."""
     data = to_dict(dataclasses.replace(train_cfg, progress=False))
-    # Keys added after runs were made: hashed only when set, so that finished runs keep their folders.
+    # Keys added after runs were made are hashed only where they change training, so that finished
+    # runs whose training they do not change keep their folders.
+    for path, changes_training in _LATER_KEYS:
+        if not changes_training(train_cfg):
+            section, key = path.split(".")
+            del data[section][key]
     if train_cfg.env.layouts == type(train_cfg.env.layouts)():
         del data["env"]["layouts"]
-    # ... and only where it changes training: PPO's whole episodes, which only adaptive models play.
-    if not (
-        train_cfg.ppo.bootstrap_time_limit
-        and train_cfg.algo == "ppo"
-        and MODELS[train_cfg.model.name].is_adaptive()
-    ):
-        del data["ppo"]["bootstrap_time_limit"]
+    if not train_cfg.model.semantic_map:
+        del data["model"]["semantic_map"]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
+
+
+def _meta_learns_under_ppo(train_cfg) -> bool:
+    """PPO's whole episodes through the inner loop: only adaptive models that keep meta-learning."""
+    return (
+        train_cfg.algo == "ppo"
+        and MODELS[train_cfg.model.name].is_adaptive()
+        and train_cfg.model.adapt != "none"
+    )
+
+
+#: ``section.key`` of the training-config keys added after runs were made, each with the rule that
+#: says whether it changes a run's training.
+_LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
+    ("ppo.bootstrap_time_limit", lambda c: c.ppo.bootstrap_time_limit and _meta_learns_under_ppo(c)),
+    ("meta.navigation_loss", _meta_learns_under_ppo),
+    ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
+    ("env.parent_reward_rule", lambda c: c.parent_reward),
+)
 
 
 def planned_runs(config: ExperimentConfig) -> dict[str, int]:
@@ -40,6 +59,9 @@ def planned_runs(config: ExperimentConfig) -> dict[str, int]:
     retrained)."""
     if config.experiment == "table3":  # the focus model, then without one room type at a time
         return {config.focus: (1 + len(config.rooms)) * config.seeds}
+    if config.experiment == "ablation":  # the focus model, then each row that trains
+        rows = [r.seeds or config.seeds for r in config.ablation_table().values() if r.train]
+        return {config.focus: config.seeds + sum(rows)}
     per_model = {"table2": len(config.rooms), "layout_shift": 2}.get(config.experiment, 1)
     return {model: per_model * config.seeds for model in config.models if model != "random"}
 

@@ -40,8 +40,9 @@ class ModelOutput(NamedTuple):
     hidden: tuple[Tensor, Tensor]
 
 
-#: What the meta-learning inner step may adapt (:attr:`ModelConfig.adapt`).
-ADAPT_MODES = ("all", "policy")
+#: What the meta-learning inner step may adapt (:attr:`ModelConfig.adapt`); ``none`` turns the
+#: meta-learning off: an adaptive model then trains and acts as a plain recurrent policy.
+ADAPT_MODES = ("all", "policy", "none")
 
 
 @dataclass(frozen=True)
@@ -63,8 +64,15 @@ class ModelConfig:
     adapt: what the inner step adapts: ``all`` (SAVN's rule: every parameter outside the learned loss)
         or ``policy`` (θ of the paper's eq. 1-3, ``a_t ~ π(φ(s_t; v), ψ(g; u); θ)``: the fusion, the
         previous-action embedding, LSTM and actor, while the state and target encoders v, u stay
-        fixed); None = the model's default (cvmeta: policy, the others: all).
+        fixed); ``none``: no meta-learning at all (no inner loop in training, no adaptation at test
+        time; the learned loss is built but never used), the same network as a plain recurrent
+        policy (the cvmeta ablation's row b); None = the model's default (cvmeta: policy, the
+        others: all).
     fusion_channels: output channels of cvmeta's pointwise fusion per category.
+    semantic_map: cvmeta also reads the 7x7 semantic feature map that a3c reads (categories, floor,
+        walls, depth; docs/observations.md) through a 1x1 convolution to 16 channels, flattened into
+        its LSTM input. Not in the paper, whose model sees the scene only through context vectors
+        and the graph (the cvmeta ablation's row e).
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
         that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
@@ -94,6 +102,7 @@ class ModelConfig:
     reference_extras: bool = False
     adapt: str | None = None
     target_context: bool = False
+    semantic_map: bool = False
 
     def __post_init__(self) -> None:
         if self.adapt not in (None, *ADAPT_MODES):
@@ -147,7 +156,9 @@ class NavModel(nn.Module):
 
     @property
     def adaptive(self) -> bool:
-        return self.is_adaptive()
+        """Whether this instance meta-learns and adapts: an adaptive class not built with
+        ``adapt: none``."""
+        return self.is_adaptive() and self.config.adapt != "none"
 
     @property
     def inner_lr(self) -> float:

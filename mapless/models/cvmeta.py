@@ -13,7 +13,8 @@ Per category j (the C graph nodes play the role of SAVN's 49 cells):
 
 Their concatenation (202 channels x C) goes through a pointwise ``Conv1d(202 -> fusion_channels)`` +
 ReLU + dropout, is flattened (32 x 101 = 3232 by default, close to SAVN's 3136) and enters
-LSTMCell(., 512). The concatenation is never formed: the convolution is computed part by part, the
+LSTMCell(., 512) (with ``model.semantic_map``, not in the paper, the 7x7 feature map's 1x1 embedding
+joins the LSTM input). The concatenation is never formed: the convolution is computed part by part, the
 tiled vectors' parts once per episode (:func:`~mapless.models.layers.pointwise_conv_of_parts`).
 Choices the paper leaves open are argued in docs/model.md.
 """
@@ -26,7 +27,14 @@ from torch import Tensor, nn
 from torch.profiler import record_function
 
 from mapless.knowledge import Knowledge
-from mapless.models.base import EMBED, NUM_ACTIONS, RECURRENT_CORE_ROLES, ModelConfig, RecurrentNavModel
+from mapless.models.base import (
+    EMBED,
+    GRID,
+    NUM_ACTIONS,
+    RECURRENT_CORE_ROLES,
+    ModelConfig,
+    RecurrentNavModel,
+)
 from mapless.models.dropout import Dropout
 from mapless.models.layers import (
     context_vector,
@@ -40,6 +48,9 @@ from mapless.models.layers import (
 )
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
+
+#: Channels of the optional semantic-map embedding (``model.semantic_map``), 16 x 49 LSTM inputs.
+SEMANTIC_MAP_CHANNELS = 16
 
 
 class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
@@ -55,7 +66,16 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         RECURRENT_CORE_ROLES
         | LEARNED_LOSS_ROLES
         | ParameterRoles(
-            encoder=("context_embed", "A", "W0", "W1", "W2", "embed_glove", "embed_target_context"),
+            encoder=(
+                "context_embed",
+                "A",
+                "W0",
+                "W1",
+                "W2",
+                "embed_glove",
+                "embed_target_context",
+                "embed_map",
+            ),
             policy=("embed_action", "pointwise"),
         )
     )
@@ -76,7 +96,11 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
         self.dropout = Dropout(config.dropout)
-        self.build_recurrent_core(config.fusion_channels * nodes)
+        map_width = 0
+        if config.semantic_map:
+            self.embed_map = nn.Conv2d(self.feature_channels, SEMANTIC_MAP_CHANNELS, 1)
+            map_width = SEMANTIC_MAP_CHANNELS * GRID * GRID
+        self.build_recurrent_core(config.fusion_channels * nodes + map_width)
         self._build_learned_loss(with_key_linear=False)
 
     def graph_descriptor(self, in_view: Tensor) -> Tensor:
@@ -100,7 +124,12 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         if self.config.target_context:
             target = target + target_context_input(obs, self.embed_target_context)
         target = F.relu(target)
-        return {"context": context, "graph": graph, "target": target}
+        described = {"context": context, "graph": graph, "target": target}
+        if self.config.semantic_map:
+            described["map"] = self.dropout(F.relu(pointwise_conv(self.embed_map, obs["features"]))).flatten(
+                1
+            )
+        return described
 
     def encode(
         self, described: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
@@ -108,4 +137,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         action = F.relu(self.embed_action(prev_policy))
         maps = [described["context"], described["graph"]]
         fused = F.relu(pointwise_conv_of_parts(self.pointwise, maps, [described["target"], action]))
-        return self.dropout(fused).flatten(1), None
+        x = self.dropout(fused).flatten(1)
+        if self.config.semantic_map:
+            x = torch.cat([x, described["map"]], dim=1)
+        return x, None

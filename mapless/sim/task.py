@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mapless.config import ConfigError
 from mapless.errors import MaplessError
 from mapless.knowledge.glove import glove_vector
 from mapless.knowledge.parents import parent_weights
@@ -22,12 +23,19 @@ TRAIN_MAX_STEPS = 30
 EVAL_MAX_STEPS = {"kitchen": 100, "living_room": 200, "bedroom": 100, "bathroom": 100}
 
 
+#: What makes a parent object count as seen for the parent bonus (:class:`RewardConfig`).
+PARENT_REWARD_RULES = ("visible", "in_frame")
+
+
 @dataclass(frozen=True)
 class RewardConfig:
     """SAVN's rewards: ``step_penalty`` per step; ``success_reward`` replaces it on a successful
     ``Done``. With ``parent_reward`` on, the first time in an episode a parent object of the target
     comes into view, its bonus replaces the step penalty (MJOLNIR's hierarchical reward, with the
-    seen set reset at every episode start). ``progress_reward`` (0 = off, as in the references) adds,
+    seen set reset at every episode start). ``parent_reward_rule`` says what "into view" means:
+    ``visible``, the success rule's visibility (MJOLNIR reads THOR's ``visible`` flag, which is this
+    rule at its 1.5 m), or ``in_frame``, any instance in the frame at any distance (this project's
+    rule before 2026-12-06). ``progress_reward`` (0 = off, as in the references) adds,
     at every move, that weight times the decrease of the shortest-path distance (in actions) to the
     nearest pose that sees the target: AllenAct's geodesic-progress shaping in this pose graph's unit.
     It is potential-based, so it telescopes to ``weight * (d_start - d_end)`` over an episode and leaves
@@ -36,9 +44,16 @@ class RewardConfig:
     step_penalty: float = -0.01
     success_reward: float = 5.0
     parent_reward: bool = False
+    parent_reward_rule: str = "visible"
     progress_reward: float = 0.0
     #: Room types whose parents pay the bonus (the hierarchy ablation drops one room type).
     parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
+
+    def __post_init__(self) -> None:
+        if self.parent_reward_rule not in PARENT_REWARD_RULES:
+            raise ConfigError(
+                f"config key 'env.parent_reward_rule': {self.parent_reward_rule!r} is not one of {PARENT_REWARD_RULES}"
+            )
 
     def pays_parent_reward(self, room_type: str) -> bool:
         return self.parent_reward and room_type in self.parent_reward_rooms

@@ -205,7 +205,12 @@ class BatchedNavEnv:
         self.pose = after
         reward = np.where(success, self.rewards.success_reward, self.rewards.step_penalty).astype(np.float32)
         if self.rewards.parent_reward:
-            in_view = (self.context[after, :, 0] > 0) & moving[:, None]
+            seen_now = (
+                self.visible_categories[after]
+                if self.rewards.parent_reward_rule == "visible"
+                else self.context[after, :, 0] > 0
+            )
+            in_view = seen_now & moving[:, None]
             bonus, self.seen_parents = parent_reward(in_view, self.parent_weights, self.seen_parents)
             reward = np.where(bonus > 0, bonus, reward).astype(np.float32)
         if self.rewards.progress_reward:
@@ -215,6 +220,20 @@ class BatchedNavEnv:
         truncated = active & ~is_done & (self.steps >= self.max_steps)
         self.done = self.done | is_done | truncated
         return BatchStep(reward, is_done, truncated, success, failed, active)
+
+    @functools.cached_property
+    def visible_categories(self) -> np.ndarray:
+        """Bool ``[poses, C]``: the category rows with an instance visible under the success rule at
+        each pose (the parent bonus's ``visible`` rule); made when first read."""
+        rows = self.targets.categories.type_to_index
+        out = np.zeros((self.n_poses, len(self.targets.categories)), dtype=bool)
+        for name, data in zip(self.scene_names, self._datas, strict=True):
+            poses, instances = data.visible_matrix_csr
+            row_of = np.array([rows.get(t, -1) for t in data.instance_types], dtype=np.int64)
+            cats = row_of[instances] if len(instances) else np.zeros(0, dtype=np.int64)
+            known = cats >= 0
+            out[poses[known] + self.scene_offset[name], cats[known]] = True
+        return out
 
     @functools.cached_property
     def features(self) -> np.ndarray:

@@ -50,6 +50,7 @@ def reward_config(config: TrainConfig) -> RewardConfig:
         step_penalty=env.step_penalty,
         success_reward=env.success_reward,
         parent_reward=config.parent_reward,
+        parent_reward_rule=env.parent_reward_rule,
         progress_reward=env.progress_reward,
         parent_reward_rooms=env.parent_reward_rooms,
     )

@@ -20,7 +20,7 @@ from mapless.models.registry import MODELS
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes
 from mapless.scenes.categories import targets
 from mapless.sim.config import SimConfig
-from mapless.sim.task import TRAIN_MAX_STEPS
+from mapless.sim.task import PARENT_REWARD_RULES, TRAIN_MAX_STEPS
 
 
 def _require(ok: bool, key: str, message: str) -> None:
@@ -86,6 +86,9 @@ class EnvConfig:
     parent_reward: MJOLNIR's parent-object bonus; None = on for mjolnir_o/mjolnir_r (MJOLNIR's
         ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off otherwise.
     parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
+    parent_reward_rule: when a parent counts as seen: ``visible`` (the success rule's visibility, as
+        MJOLNIR's reward reads THOR's ``visible`` flag) or ``in_frame`` (at any distance; this
+        project's rule before 2026-12-06); :class:`~mapless.sim.task.RewardConfig`.
     step_penalty, success_reward: SAVN's rewards.
     progress_reward: weight of the geodesic-progress shaping (:class:`~mapless.sim.task.RewardConfig`;
         0 = off, the paper's protocol; docs/learning.md measures it).
@@ -102,6 +105,7 @@ class EnvConfig:
     target_set: str = "mjolnir22"
     parent_reward: bool | None = None
     parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
+    parent_reward_rule: str = "visible"
     step_penalty: float = -0.01
     success_reward: float = 5.0
     progress_reward: float = 0.0
@@ -131,6 +135,11 @@ class EnvConfig:
             self.layouts.source == "default" or not self.offline_dir,
             "env.layouts.source",
             "scene variants need the built-in simulator, not an offline data root",
+        )
+        _require(
+            self.parent_reward_rule in PARENT_REWARD_RULES,
+            "env.parent_reward_rule",
+            f"{self.parent_reward_rule!r} is not one of {PARENT_REWARD_RULES}",
         )
         unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
         _require(
@@ -196,16 +205,38 @@ class LossConfig:
             _require(_finite(getattr(self, key)), f"loss.{key}", f"must be finite, got {getattr(self, key)}")
 
 
+#: The steps the outer loss of adaptive models reads (:attr:`MetaConfig.navigation_loss`).
+NAVIGATION_LOSSES = ("episode", "after_interaction")
+
+
 @dataclass(frozen=True)
 class MetaConfig:
     """Meta-learning of adaptive models (savn, gve, spatt, cvmeta); ignored by the others.
 
     first_order: first-order meta-gradient instead of SAVN's second order.
+    navigation_loss: which steps of an episode the outer (navigation) loss reads under PPO:
+        ``episode``, every step, each with the weights that acted (SAVN's code), or
+        ``after_interaction``, only the steps after the first k (the paper's text: L_nav on
+        D_nav, the rest of the trajectory; with ``model.max_inner_updates: 1`` that is the paper's
+        schedule, one adaptation after the first k steps).
+    learned_loss_from_imitation: whether the learned interaction loss φ is meta-trained while the
+        imitation term (``ppo.imitation_coef``) is on. Off (default): φ receives no gradient from an
+        update whose loss holds the expert's cross-entropy, a signal that does not exist at test
+        time, so φ only ever learns to stand in for the navigation loss.
     The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
     ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
     """
 
     first_order: bool = False
+    navigation_loss: str = "episode"
+    learned_loss_from_imitation: bool = False
+
+    def __post_init__(self) -> None:
+        _require(
+            self.navigation_loss in NAVIGATION_LOSSES,
+            "meta.navigation_loss",
+            f"{self.navigation_loss!r} is not one of {NAVIGATION_LOSSES}",
+        )
 
 
 @dataclass(frozen=True)

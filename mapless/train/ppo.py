@@ -12,14 +12,19 @@ Per update::
 
 Adaptive models (savn, gve, spatt, cvmeta) play whole episodes and replay each one through the
 meta-learning inner loop (:class:`~mapless.agent.meta.InnerLoop`), recomputed in every minibatch from
-the current parameters: the first k steps interact, the rest act with the weights adapted on the
-learned interaction loss, and the meta-gradient (second order, or first order with ``meta.first_order``)
-flows through the adaptation. The probability ratio is that of the adapted policy against the
-adapted policy that acted.
+the current parameters. SAVN's schedule, the default: after every k = ``model.interaction_steps``
+steps (at most ``model.max_inner_updates`` times) the fast weights take one SGD step on the learned
+interaction loss of the last k steps, and the PPO loss reads every step of the episode, each with the
+weights that acted. The paper's text instead adapts once after the first k steps and computes the
+navigation loss on the rest: ``model.max_inner_updates: 1`` with ``meta.navigation_loss:
+after_interaction``. The meta-gradient (second order, or first order with ``meta.first_order``) flows
+through the adaptation. The probability ratio is that of the adapted policy against the adapted
+policy that acted.
 
 With ``ppo.imitation_coef`` > 0 the loss also holds the cross-entropy to the simulator's
 shortest-path expert on the agent's own steps (an imitation warm start, annealed over
-``ppo.imitation_frames``; off in the paper's protocol).
+``ppo.imitation_frames``; off in the paper's protocol). While it is on, the learned loss φ takes no
+step (``meta.learned_loss_from_imitation``): what φ learns to imitate must exist at test time.
 
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
 that acted with the same function under new parameters. The run folder, checkpoints, budget, logs
@@ -82,6 +87,8 @@ class PPOTrainer(BatchedTrainer):
             bootstrap_time_limit=cfg.ppo.bootstrap_time_limit,
         )
         self.inner = InnerLoop(self.model, first_order=cfg.meta.first_order) if adaptive else None
+        self._named_params = dict(self.model.named_parameters())
+        self._learned_loss_names = self.model.learned_loss_parameter_names() if adaptive else []
         if resume is not None:
             self._restore(resume)
         else:
@@ -165,6 +172,10 @@ class PPOTrainer(BatchedTrainer):
         ppo = self.config.ppo
         self.optimizer.zero_grad(set_to_none=True)
         mask = segment.mask[:, columns]
+        if self.inner is not None and self.config.meta.navigation_loss == "after_interaction":
+            # The paper's L_nav reads D_nav, the steps after the first k (the interaction phase).
+            mask = mask.clone()
+            mask[: self.model.config.interaction_steps] = 0
         advantage = advantages[:, columns]
         if ppo.normalize_advantages:
             valid = advantage[mask > 0]
@@ -207,6 +218,11 @@ class PPOTrainer(BatchedTrainer):
             total.backward()
         else:
             self.inner.backward(state, total)
+            if self._imitation > 0 and not self.config.meta.learned_loss_from_imitation:
+                # φ must learn to stand in for the navigation loss, not for the expert's
+                # cross-entropy, which does not exist at test time: no φ step in this update.
+                for name in self._learned_loss_names:
+                    self._named_params[name].grad = None
         return PPOLoss(*(t.detach() for t in loss))
 
     def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
