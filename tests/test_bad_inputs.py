@@ -262,3 +262,27 @@ def test_a_negative_seed_is_a_config_error_naming_the_key(tmp_path, capsys):
     assert "config key 'seed': must be >= 0" in err and not runs.exists()
     err = error_of(["reproduce", "table1", "--set", "eval.seed=-1", "--reports", str(tmp_path)], capsys)
     assert "config key 'eval.seed': must be >= 0" in err
+
+
+def test_a_model_with_nan_weights_is_refused_before_evaluation(tmp_path, capsys, monkeypatch):
+    """A valid digest, NaN weights: evaluated with SR 0 and exit 0 before (issue 45, points 3 and 12)."""
+    import torch
+    from train_fixtures import tiny_config
+
+    from mapless import checkpoint as ckpt
+    from mapless.models import build_model
+    from mapless.train.run import resume_config
+
+    config = tiny_config("a3c")
+    weights = {k: torch.full_like(v, float("nan")) for k, v in build_model(config.model).state_dict().items()}
+    model = tmp_path / "model.pt"
+    ckpt.atomic_save(ckpt.model_payload(weights, config, {"episodes": 4, "frames": 20}), model)
+    monkeypatch.setattr("mapless.evaluate.selection.evaluate", lambda *a, **k: pytest.fail("evaluated"))
+    err = error_of(["eval", str(model), "--per-room", "1", "--out", str(tmp_path / "eval")], capsys)
+    assert f"{model} holds a diverged model" in err and "NaN or infinite" in err
+    assert not (tmp_path / "eval").exists()
+    run = tmp_path / "run"  # nor is such a checkpoint resumed
+    state = {**ckpt.model_payload(weights, config, {}), "kind": "checkpoint", "optimizer": {}, "rng": []}
+    ckpt.atomic_save(state, run / ckpt.CHECKPOINT_FILE)
+    with pytest.raises(ckpt.CheckpointError, match="holds a diverged model"):
+        resume_config(run)

@@ -278,18 +278,27 @@ FAST = SimConfig(ray_resolution=14)
 def test_scene_cache_files(tmp_path):
     cache.load_or_build(SCENE, FAST, tmp_path)
     path = cache.cache_path(SCENE, FAST, tmp_path)
+    original = cache.load(path, FAST)
     with np.load(path) as npz:
         arrays = {k: npz[k] for k in npz.files}
     header = json.loads(str(arrays.pop("header")))
     rng = np.random.default_rng(SEED)
 
-    def crafted() -> Iterator[str]:
-        """Headers and arrays of the wrong kind, with a checksum made to match."""
+    def read() -> None:
+        """Refused (the scene is rebuilt), or read as the scene that was written: never another one."""
+        data = cache.load(path, FAST)
+        for name in cache._ARRAY_FIELDS:
+            assert np.array_equal(getattr(data, name), getattr(original, name)), f"{name} read damaged"
+        for name in ("scene", "room_type", "instance_ids", "instance_types", "feature_scale"):
+            assert getattr(data, name) == getattr(original, name), f"{name} read damaged"
+
+    def crafted(part: str) -> Iterator[str]:
+        """Headers or arrays of the wrong kind, with a checksum made to match."""
         good = path.read_bytes()
         try:
-            for i in range(60):
+            for i in range(30):
                 head, arrs = dict(header), dict(arrays)
-                if i < 30:
+                if part == "header":
                     head = mutated(head, rng)
                 else:
                     name = cache._ARRAY_FIELDS[i % len(cache._ARRAY_FIELDS)]
@@ -304,13 +313,21 @@ def test_scene_cache_files(tmp_path):
                     head["checksum"] = cache._checksum(arrs)
                 with path.open("wb") as handle:
                     np.savez(handle, header=np.array(json.dumps(head)), **arrs)
-                yield f"crafted {i}"
+                yield f"crafted {part} {i}"
         finally:
             path.write_bytes(good)
 
-    for inputs in (byte_damage(path, 30), crafted()):
-        fuzz(path, lambda: cache.load(path, FAST), inputs, clean=cache.StaleCacheError)
-    assert cache.load(path, FAST).n_poses > 0  # the original is back and valid
+    flips = fuzz(path, read, byte_damage(path, 30), clean=cache.StaleCacheError)
+    headers = fuzz(path, read, crafted("header"), clean=cache.StaleCacheError)
+    arrays_ = fuzz(path, read, crafted("arrays"), clean=cache.StaleCacheError)
+    # Counted, so that a reader that starts accepting damage fails here: the zip's CRCs and the
+    # checksum catch byte damage, and every array replacement breaks a shape, a kind or an index.
+    assert flips["refused"] >= 0.9 * sum(flips.values()) and sum(flips.values()) > 45
+    assert arrays_ == {"read": 0, "refused": 30}
+    # A header mutation is read only where it changed nothing the simulator uses (meta, or the
+    # checksum, which is made to match again).
+    assert headers["refused"] >= 20
+    read()  # the original is back and valid
 
 
 # --------------------------------------------------------------------------------------- checkpoints
@@ -322,42 +339,74 @@ def test_checkpoints(tmp_path):
     model_file = tmp_path / "model.pt"
     payload = ckpt.model_payload(weights, config, {"episodes": 4, "frames": 20})
     ckpt.atomic_save(payload, model_file)
-    ckpt.load_model(model_file)  # the undamaged file loads
     rng = np.random.default_rng(SEED)
 
-    def crafted() -> Iterator[str]:
+    def read() -> None:
+        """What ``mapless eval`` reads (the whole config, then the model): refused, or loaded with the
+        weights and counters that were written, never other ones."""
+        ckpt.config_of(ckpt.load_file(model_file), TrainConfig)
+        model, _, counters = ckpt.load_model(model_file)
+        for name, value in model.state_dict().items():
+            assert torch.equal(value, weights[name]), f"{name} read damaged"
+        assert all(isinstance(v, int) for v in counters.values())
+
+    read()  # the undamaged file loads
+
+    def crafted(part: str, count: int) -> Iterator[str]:
         """Well-formed files (a valid digest) whose content is wrong in one place."""
         names = list(weights)
-        for i in range(60):
+        for i in range(count):
             bad = dict(payload)
-            if i < 20:
+            if part == "config":
                 bad["config"] = mutated(to_dict(config), rng)
-            elif i < 30:
+            elif part == "structure":
                 bad[["format", "kind", "config", "model", "counters"][i % 5]] = JUNK[i % len(JUNK)]
-            elif i < 45:
+            elif part == "weights":
                 model = dict(weights)
                 name = names[i % len(names)]
                 model[name] = (torch.zeros(3), torch.zeros(()), "weights", None, torch.zeros(2, 2))[i % 5]
                 if i % 3 == 0:
                     del model[name]
                 bad["model"] = model
+            elif part == "non-finite":  # a diverged model, saved with a valid digest
+                name = names[i % len(names)]
+                bad["model"] = {
+                    **weights,
+                    name: torch.full_like(weights[name], (float("nan"), float("inf"))[i % 2]),
+                }
             else:
                 bad["counters"] = mutated(payload["counters"], rng)
             ckpt.atomic_save(bad, model_file)
-            yield f"crafted {i}"
-        for i, foreign in enumerate(([1, 2], "text", {"format": 1}, torch.zeros(3))):
-            torch.save(foreign, model_file)
+            yield f"crafted {part} {i}"
+
+    def foreign() -> Iterator[str]:
+        for i, value in enumerate(([1, 2], "text", {"format": 1}, torch.zeros(3))):
+            torch.save(value, model_file)
             yield f"foreign {i}"
 
-    fuzz(model_file, lambda: ckpt.load_model(model_file), crafted())
+    counts = {part: fuzz(model_file, read, crafted(part, 15)) for part in ("config", "structure", "weights",
+                                                                           "non-finite", "counters")}  # fmt: skip
+    counts["foreign"] = fuzz(model_file, read, foreign())
     ckpt.atomic_save(payload, model_file)
-    fuzz(model_file, lambda: ckpt.load_model(model_file), byte_damage(model_file, 30))
+    flips = fuzz(model_file, read, byte_damage(model_file, 30))
+    # Counted, so that a reader that starts accepting damage fails here. A mutated config or counter
+    # may still be a valid one (read, with the weights intact); nothing else may be read.
+    for part in ("structure", "weights", "non-finite"):
+        assert counts[part] == {"read": 0, "refused": 15}, part
+    assert counts["foreign"] == {"read": 0, "refused": 4}
+    assert counts["config"]["refused"] >= 8 and counts["counters"]["refused"] >= 10
+    assert flips["refused"] >= 0.9 * sum(flips.values()) and sum(flips.values()) > 45
 
     run = tmp_path / "run"
     state = {**payload, "kind": "checkpoint", "optimizer": {"state": {}, "param_groups": []}, "rng": []}
     ckpt.atomic_save(state, run / ckpt.CHECKPOINT_FILE)
-    resume_config(run)
-    fuzz(run / ckpt.CHECKPOINT_FILE, lambda: resume_config(run), byte_damage(run / ckpt.CHECKPOINT_FILE, 20))
+    resumed = resume_config(run)[1]
+
+    def resume() -> None:
+        assert ckpt.digest(resume_config(run)[1]) == ckpt.digest(resumed), "read damaged"
+
+    flips = fuzz(run / ckpt.CHECKPOINT_FILE, resume, byte_damage(run / ckpt.CHECKPOINT_FILE, 20))
+    assert flips["refused"] >= 0.9 * sum(flips.values()) and sum(flips.values()) > 30
 
 
 # ------------------------------------------------------------------------------------------- configs

@@ -38,10 +38,14 @@ from mapless.sim.scene_data import SceneData
 
 #: Bump when the simulator's output changes for the same parameters.
 SIM_VERSION = 1
-_ARRAY_FIELDS = (
-    "x", "z", "yaw", "horizon", "successors", "view_ptr", "view_instance", "view_box",
-    "view_distance", "view_visible", "context", "features",
-)  # fmt: skip
+#: The arrays of a cache file and the dtypes build_scene_data gives them (a file with another is
+#: not one it wrote).
+_ARRAY_DTYPES = {
+    "x": np.float32, "z": np.float32, "yaw": np.int16, "horizon": np.int16, "successors": np.int32,
+    "view_ptr": np.int64, "view_instance": np.int32, "view_box": np.float32,
+    "view_distance": np.float32, "view_visible": np.bool_, "context": np.float32, "features": np.uint8,
+}  # fmt: skip
+_ARRAY_FIELDS = tuple(_ARRAY_DTYPES)
 
 
 def scenes_dir(cache_dir: str | Path | None = None) -> Path:
@@ -161,17 +165,19 @@ def _inconsistency(header: dict, arrays: dict[str, np.ndarray]) -> str | None:
     wrong = [k for k, kind in kinds.items() if not isinstance(header.get(k), kind)]
     if wrong:
         return f"header field {wrong[0]!r} is missing or not a {kinds[wrong[0]].__name__}"
+    if not 0 < header["feature_scale"] <= 1:  # NaN included: 1/255 for uint8 features, 1 for float ones
+        return f"feature_scale {header['feature_scale']} is not in (0, 1]"
     ids, types = header["instance_ids"], header["instance_types"]
     if len(ids) != len(types) or not all(isinstance(t, str) for t in ids + types):
         return "instance ids and types are not two lists of names of one length"
-    if not all(arrays[k].dtype.kind in "biuf" for k in _ARRAY_FIELDS):
-        return "arrays that are not numbers"
+    wrong = [k for k, dtype in _ARRAY_DTYPES.items() if arrays[k].dtype != dtype]
+    if wrong:
+        return f"array {wrong[0]!r} is {arrays[wrong[0]].dtype}, not {np.dtype(_ARRAY_DTYPES[wrong[0]])}"
     poses = len(arrays["x"])
     ptr, entries = arrays["view_ptr"], len(arrays["view_instance"])
     checks = (
         all(arrays[k].shape == (poses,) for k in ("x", "z", "yaw", "horizon")),
         arrays["successors"].ndim == 2 and arrays["successors"].shape[0] == poses,
-        all(np.issubdtype(arrays[k].dtype, np.integer) for k in ("successors", "view_ptr", "view_instance")),
         arrays["successors"].size == 0
         or 0 <= arrays["successors"].min() <= arrays["successors"].max() < poses,
         ptr.shape == (poses + 1,) and ptr[0] == 0 and ptr[-1] == entries and bool(np.all(np.diff(ptr) >= 0)),
