@@ -12,9 +12,6 @@ import torch
 
 _SESSION_CACHE: str | None = None
 
-# The live AI2-THOR tests need the Unity build (a download) and a display: opt-in only.
-collect_ignore = [] if os.environ.get("MAPLESS_THOR") == "1" else ["test_thor_real.py"]
-
 
 def pytest_configure(config) -> None:
     global _SESSION_CACHE

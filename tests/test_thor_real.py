@@ -1,5 +1,5 @@
 """The live backend against a real AI2-THOR (needs the Unity build, so it is not part of the
-default suite: tests/conftest.py collects it only when ``MAPLESS_THOR=1``).
+default suite: without ``MAPLESS_THOR=1`` pytest reports these tests as skipped, with the reason).
 
 Run with ``MAPLESS_THOR=1 pytest tests/test_thor_real.py`` on a machine with ``mapless[thor]``
 installed and a display (or ``MAPLESS_THOR_PLATFORM=CloudRendering`` for headless Vulkan).
@@ -15,6 +15,11 @@ import pytest
 
 from mapless.offline import load_offline_scene
 from mapless.sim.scene_data import N_MOVEMENT_ACTIONS
+
+pytestmark = pytest.mark.skipif(
+    os.environ.get("MAPLESS_THOR") != "1",
+    reason="live AI2-THOR (the Unity build and a display): opt in with MAPLESS_THOR=1",
+)
 
 
 @pytest.fixture(scope="module")
