@@ -158,21 +158,38 @@ def test_batched_env_matches_the_single_env(library):
             finished[slot] = terminated or truncated
 
 
-def test_parent_reward_pays_once_per_parent_per_episode(library):
+def _seen_categories(data, rule: str) -> np.ndarray:
+    """Bool ``[poses, C]`` of the category rows a parent rule counts as seen, from the scene's arrays
+    pose by pose: ``in_frame`` the context's in-view column, ``visible`` the success rule's instances."""
+    if rule == "in_frame":
+        return data.context[:, :, 0] > 0
+    from mapless.scenes.categories import category_set
+
+    rows = category_set().type_to_index
+    seen = np.zeros(data.context.shape[:2], dtype=bool)
+    for pose in range(data.n_poses):
+        for instance in data.visible(pose):
+            row = rows.get(data.instance_types[instance], -1)
+            if row >= 0:
+                seen[pose, row] = True
+    return seen
+
+
+@pytest.mark.parametrize("rule", ["visible", "in_frame"])
+def test_parent_reward_pays_once_per_parent_per_episode(library, rule):
     data = library[SCENE]
-    probe = NavEnv(library, [far_episode(library)[0]], rewards=RewardConfig(parent_reward=True))
+    rewards = RewardConfig(parent_reward=True, parent_reward_rule=rule)
+    probe = NavEnv(library, [far_episode(library)[0]], rewards=rewards)
     probe.reset()
     weights = probe.batched.parent_weights[0]  # the rules, and their state, are the batched env's
     is_parent = weights > 0
     assert is_parent.any()  # the Toaster has parents in kitchens
-    in_view = data.context[:, :, 0] > 0
+    in_view = _seen_categories(data, rule)
     turn_right = data.successors[:, 2]
     # A pose that sees no parent, whose right turn brings one into view.
     candidates = np.flatnonzero(~(in_view & is_parent).any(1) & (in_view[turn_right] & is_parent).any(1))
     pose = int(candidates[0])
-    env = NavEnv(
-        library, [Episode(SCENE, "Toaster", data.pose_tuple(pose))], rewards=RewardConfig(parent_reward=True)
-    )
+    env = NavEnv(library, [Episode(SCENE, "Toaster", data.pose_tuple(pose))], rewards=rewards)
     env.reset()
     _, reward, _, _, _ = env.step(2)
     assert reward == pytest.approx(weights[in_view[turn_right[pose]] & is_parent].max())
@@ -183,6 +200,41 @@ def test_parent_reward_pays_once_per_parent_per_episode(library):
     env.reset()  # the seen set is per episode: the bonus is paid again
     _, reward_again, _, _, _ = env.step(2)
     assert reward_again == pytest.approx(reward)
+
+
+def test_a_parent_in_the_frame_beyond_the_visibility_distance_pays_only_under_the_in_frame_rule(library):
+    """The default rule is the success rule's visibility (MJOLNIR's ``visible`` flag): a parent in the
+    frame but too far away is not yet seen."""
+    data = library[SCENE]
+    assert RewardConfig().parent_reward_rule == "visible"
+    probe = NavEnv(library, [far_episode(library)[0]], rewards=RewardConfig(parent_reward=True))
+    probe.reset()
+    is_parent = probe.batched.parent_weights[0] > 0
+    in_frame, visible = _seen_categories(data, "in_frame"), _seen_categories(data, "visible")
+    assert not (visible & ~in_frame).any()  # visible implies in the frame
+    turn_right = data.successors[:, 2]
+    # A turn that brings a parent into the frame, none of them visible, from a pose seeing none.
+    far_only = (
+        ~(in_frame & is_parent).any(1)
+        & (in_frame[turn_right] & is_parent).any(1)
+        & ~(visible[turn_right] & is_parent).any(1)
+    )
+    pose = int(np.flatnonzero(far_only)[0])
+    paid = {}
+    for rule in ("visible", "in_frame"):
+        rewards = RewardConfig(parent_reward=True, parent_reward_rule=rule)
+        env = NavEnv(library, [Episode(SCENE, "Toaster", data.pose_tuple(pose))], rewards=rewards)
+        env.reset()
+        paid[rule] = env.step(2)[1]
+    assert paid["visible"] == pytest.approx(-0.01)
+    assert paid["in_frame"] > 0
+
+
+def test_an_unknown_parent_rule_is_a_config_error():
+    from mapless.config import ConfigError
+
+    with pytest.raises(ConfigError, match="parent_reward_rule"):
+        RewardConfig(parent_reward_rule="nearby")
 
 
 def test_off_grid_start_names_the_nearest_valid_pose(library):

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from mapless.cli import main
+from mapless.config import ConfigError
 from mapless.episodes import evalsets
 from mapless.experiments import RunTally, load_experiment, planned_runs, run_dir_for, train_config
 from mapless.provenance import provenance
@@ -428,3 +429,63 @@ def test_the_time_limit_bootstrap_names_a_run_folder_only_where_it_changes_train
     assert folder("savn", "train.algo=a3c") == folder("savn", "train.algo=a3c", off)
     assert folder("cvmeta") != folder("cvmeta", off)
     assert folder("savn") != folder("savn", off)
+
+
+def test_reproduce_ablation_rows_against_the_focus_model(workspace):
+    """A row that trains (its own runs, named after it) and a row that only evaluates the focus
+    model's chosen snapshot without test-time adaptation, each paired with the focus model."""
+    root, config = workspace
+    reports = root / "reports"
+    ablation = root / "ablation.yaml"
+    ablation.write_text(
+        config.read_text().replace("experiment: table1", "experiment: ablation")
+        .replace("models: [random, a3c]", "models: [cvmeta]").replace("focus: a3c", "focus: cvmeta")
+        + """ablations:
+  a_unadapted: {what: no test-time adaptation, test_time_adaptation: false}
+  c_no_parent: {what: parent reward off, train: {env: {parent_reward: false}}}
+  z_unused: {what: not run, train: {model: {fusion_channels: 4}}}
+ablation_rows: [a_unadapted, c_no_parent]
+"""
+    )  # fmt: skip
+    assert main(["reproduce", "ablation", "--config", str(ablation), "--reports", str(reports)]) == 0
+    payload = json.loads((reports / "ablation" / "ablation.json").read_text())
+    focus, unadapted, no_parent = payload["models"]
+    assert [m.get("row") for m in payload["models"]] == ["focus", "a_unadapted", "c_no_parent"]
+    assert unadapted["runs"][0]["run_dir"] == focus["runs"][0]["run_dir"]
+    assert "__ablation-c_no_parent__" in no_parent["runs"][0]["run_dir"]
+    for row in (unadapted, no_parent):
+        difference = row["minus_focus"]["success"]["mean"]
+        assert difference == pytest.approx(
+            row["estimates"]["success"]["mean"] - focus["estimates"]["success"]["mean"]
+        )
+    # Without adaptation the agent is another one: the episodes' lengths or outcomes differ somewhere.
+    lengths = lambda rec: [(e["length"], e["success"]) for e in rec["episodes"][0]]  # noqa: E731
+    assert lengths(unadapted) != lengths(focus)
+    md = (reports / "ablation" / "ablation.md").read_text()
+    assert "Δ false Done" in md and "c_no_parent" in md and "z_unused" not in md
+
+
+def test_an_ablation_row_that_changes_nothing_or_names_no_row_is_refused(tmp_path):
+    path = tmp_path / "ablation.yaml"
+    path.write_text("experiment: ablation\nbudget: smoke\nablations:\n  x: {what: nothing}\n")
+    with pytest.raises(ConfigError, match="changes nothing"):
+        load_experiment("ablation", "smoke", path=path)
+    path.write_text(
+        "experiment: ablation\nbudget: smoke\nablations:\n  x: {what: w, train: {model: {gcn_hidden: 8}}}\n"
+    )
+    with pytest.raises(ConfigError, match="unknown ablation row 'y'"):
+        load_experiment("ablation", "smoke", path=path, overrides=["ablation_rows=[y]"])
+    path.write_text(
+        "experiment: ablation\nbudget: smoke\nablations:\n  x: {what: w, train: {model: {widht: 8}}}\n"
+    )
+    with pytest.raises(ConfigError, match="widht"):
+        load_experiment("ablation", "smoke", path=path)
+
+
+def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
+    small, medium = load_experiment("ablation", "small"), load_experiment("ablation", "medium")
+    assert medium.ablations == small.ablations and medium.budget == "medium"
+    assert medium.train["max_seconds"] == 3600 and small.train["max_seconds"] == 900
+    # The focus model and six rows that train; row a only evaluates.
+    assert planned_runs(small) == {"cvmeta": 7}
+    assert planned_runs(load_experiment("ablation", "small", seeds=2)) == {"cvmeta": 14}

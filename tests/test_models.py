@@ -359,3 +359,31 @@ def test_target_context_reaches_every_model_through_the_targets_own_row(name, ti
     assert not any("target_context" in n for n, _ in without.named_parameters())
     if name in ("a3c", "savn"):  # they read the feature map only, never a context row
         assert torch.equal(without(*args(obs)).value, without(*args(moved)).value)
+
+
+def test_cvmeta_reads_the_semantic_map_only_with_the_option(tiny):
+    """``model.semantic_map`` adds the 7x7 feature map's 1x1 embedding to cvmeta's LSTM input (an
+    encoder parameter, so policy-only adaptation keeps it fixed); without it the map is never read."""
+    gen = torch.Generator().manual_seed(5)
+    obs = synthetic_observations(2, tiny, generator=gen)
+    moved = {**obs, "features": obs["features"] + torch.rand(obs["features"].shape, generator=gen)}
+    args = lambda o: (o, (torch.zeros(2, 24), torch.zeros(2, 24)), torch.full((2, 6), 1 / 6))  # noqa: E731
+    with_map = build_model(
+        "cvmeta", knowledge=tiny, hidden_size=24, fusion_channels=2, semantic_map=True
+    ).eval()
+    without = build_model("cvmeta", knowledge=tiny, hidden_size=24, fusion_channels=2).eval()
+    assert with_map.lstm.weight_ih.shape[1] == without.lstm.weight_ih.shape[1] + 16 * 49
+    assert not torch.allclose(with_map(*args(obs)).logits, with_map(*args(moved)).logits)
+    assert torch.equal(without(*args(obs)).logits, without(*args(moved)).logits)
+    assert with_map.parameter_role_map()["embed_map.weight"] == "encoder"
+    assert "embed_map.weight" not in with_map.inner_parameter_names()
+
+
+def test_adapt_none_makes_an_adaptive_model_a_plain_recurrent_policy(tiny):
+    """The same network (same parameters, same forward) that neither meta-learns nor adapts."""
+    plain = build_model("cvmeta", knowledge=tiny, hidden_size=24, fusion_channels=2, adapt="none")
+    meta = build_model("cvmeta", knowledge=tiny, hidden_size=24, fusion_channels=2)
+    assert type(plain).is_adaptive() and meta.adaptive and not plain.adaptive
+    assert [n for n, _ in plain.named_parameters()] == [n for n, _ in meta.named_parameters()]
+    with pytest.raises(ConfigError, match=r"model\.adapt"):
+        build_model("cvmeta", adapt="sometimes")

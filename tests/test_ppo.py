@@ -305,3 +305,83 @@ def test_imitation_pulls_the_policy_toward_the_expert() -> None:
     # From chance (log 6 = 1.79 nats) the cross-entropy to the expert falls on the agent's own steps.
     assert losses[0] > 1.6
     assert np.mean(losses[-3:]) < losses[0] - 0.4
+
+
+def _adaptive_trainer(*overrides: str) -> tuple[PPOTrainer, object]:
+    config = tiny_config(
+        "cvmeta",
+        "algo=ppo",
+        "ppo.envs=6",
+        "ppo.minibatches=1",
+        "frames=100",
+        "model.inner_lr=0.1",
+        *overrides,
+    )
+    trainer = PPOTrainer(config, None, fixture_library)
+    trainer._setup(None)
+    return trainer, trainer.collector.collect(8, trainer.rng)
+
+
+def _gradients(trainer: PPOTrainer, segment, advantages: torch.Tensor) -> dict[str, torch.Tensor | None]:
+    columns = torch.arange(segment.mask.shape[1])
+    returns = segment.values + advantages
+    trainer._minibatch_step(segment, columns, advantages, returns)
+    return {n: None if p.grad is None else p.grad.clone() for n, p in trainer.model.named_parameters()}
+
+
+@pytest.mark.parametrize("navigation_loss", ["episode", "after_interaction"])
+def test_the_papers_navigation_loss_reads_no_step_of_the_interaction_phase(navigation_loss: str) -> None:
+    """Under ``meta.navigation_loss: after_interaction`` the first k steps of every episode are out
+    of the loss: changing their advantages changes no gradient; under ``episode`` it does."""
+    k = 3
+    trainer, segment = _adaptive_trainer(
+        f"model.interaction_steps={k}", "model.max_inner_updates=1", f"meta.navigation_loss={navigation_loss}",
+        "ppo.normalize_advantages=false",
+    )  # fmt: skip
+    assert (segment.mask[k:].sum() > 0) and (segment.mask[:k].sum() > 0)
+    torch.manual_seed(0)
+    advantages = torch.randn_like(segment.values)
+    changed = advantages.clone()
+    changed[:k] += 5.0
+    first, second = _gradients(trainer, segment, advantages), _gradients(trainer, segment, changed)
+    same = all(
+        (a is None and b is None) or torch.allclose(a, b, atol=1e-6)
+        for a, b in zip(first.values(), second.values(), strict=True)
+    )
+    assert same == (navigation_loss == "after_interaction")
+    assert any(g is not None and g.abs().sum() > 0 for g in first.values())
+
+
+@pytest.mark.parametrize(
+    ("imitation", "from_imitation", "phi_steps"), [(1.0, False, False), (1.0, True, True), (0.0, False, True)]
+)
+def test_the_learned_loss_takes_no_step_while_the_expert_term_is_on(
+    imitation: float, from_imitation: bool, phi_steps: bool
+) -> None:
+    """φ learns to stand in for the navigation loss only: an update whose loss holds the expert's
+    cross-entropy leaves it without gradient (unless ``meta.learned_loss_from_imitation``)."""
+    trainer, segment = _adaptive_trainer(
+        "ppo.imitation_coef=1", f"meta.learned_loss_from_imitation={str(from_imitation).lower()}"
+    )
+    trainer._imitation = imitation
+    torch.manual_seed(0)
+    grads = _gradients(trainer, segment, torch.randn_like(segment.values))
+    phi = trainer.model.learned_loss_parameter_names()
+    assert phi
+    has_step = [grads[n] is not None and bool(grads[n].abs().sum() > 0) for n in phi]
+    assert any(has_step) == phi_steps
+    assert grads["lstm.weight_ih"] is not None and grads["lstm.weight_ih"].abs().sum() > 0
+
+
+def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_policy() -> None:
+    """``model.adapt: none``: no inner loop, segments of ``ppo.steps`` like a3c's, the learned loss
+    never used (no gradient)."""
+    config = tiny_config("cvmeta", "algo=ppo", "ppo.envs=4", "ppo.steps=5", "frames=100", "model.adapt=none")
+    trainer = PPOTrainer(config, None, fixture_library)
+    trainer._setup(None)
+    assert trainer.inner is None and not trainer.model.adaptive
+    segment = trainer.collector.collect(5, trainer.rng)
+    assert segment.mask.shape[0] == 5
+    grads = _gradients(trainer, segment, torch.randn_like(segment.values))
+    assert all(grads[n] is None for n in trainer.model.learned_loss_parameter_names())
+    assert grads["lstm.weight_ih"].abs().sum() > 0
