@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import os
 import secrets
-from collections.abc import Iterator
+import tempfile
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -43,3 +44,25 @@ def write_text(path: str | Path, text: str) -> None:
     """``Path(path).write_text(text)``, atomically (:func:`replacing`)."""
     with replacing(path) as tmp:
         tmp.write_text(text)
+
+
+def unwritable(folder: str | Path, names: Iterable[str] = ()) -> str | None:
+    """Why the files ``names`` (or, without names, any file) could not be written in ``folder``, its
+    missing parents made on the way; None when they can. Commands check their output before the
+    work whose results it holds, so that an unwritable path costs no work. Nothing is created: the
+    nearest folder that exists is probed with a temporary file."""
+    folder = Path(folder)
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a folder"
+    taken = [folder / name for name in names if (folder / name).is_dir()]
+    if taken:
+        return f"{taken[0]} is a folder"
+    try:
+        with tempfile.TemporaryFile(dir=existing, prefix=".probe-"):
+            pass
+    except OSError as error:
+        return f"cannot write in {existing}: {error.strerror or error}"
+    return None

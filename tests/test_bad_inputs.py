@@ -286,3 +286,32 @@ def test_a_model_with_nan_weights_is_refused_before_evaluation(tmp_path, capsys,
     ckpt.atomic_save(state, run / ckpt.CHECKPOINT_FILE)
     with pytest.raises(ckpt.CheckpointError, match="holds a diverged model"):
         resume_config(run)
+
+
+def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
+    """eval --out, train --run-dir and scenes show --out ended in a bare traceback, eval's after the
+    whole evaluation (issue 45, point 13): each is checked first, naming the path."""
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where a folder should be")
+    monkeypatch.setattr("mapless.evaluate.runner.evaluate", lambda *a, **k: pytest.fail("evaluated"))
+    err = error_of(["eval", "random", "--per-room", "1", "--out", str(blocker / "eval")], capsys)
+    assert f"--out {blocker / 'eval'}: {blocker} is not a folder; nothing was evaluated" in err
+    (tmp_path / "out" / "val.json").mkdir(parents=True)
+    err = error_of(["eval", "random", "--per-room", "1", "--out", str(tmp_path / "out")], capsys)
+    assert f"{tmp_path / 'out' / 'val.json'} is a folder" in err
+
+    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    err = error_of(["train", smoke, "--run-dir", str(blocker)], capsys)
+    assert f"cannot write the run folder {blocker}: {blocker} is not a folder" in err
+    err = error_of(["scenes", "show", SCENE, "--out", str(blocker / "scene.png")], capsys)
+    assert f"--out {blocker / 'scene.png'}: {blocker} is not a folder" in err
+
+    def denied(*args, **kwargs):  # what a user other than root meets in a folder of root's
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr("mapless.files.tempfile.TemporaryFile", denied)
+    err = error_of(["eval", "random", "--per-room", "1", "--out", str(tmp_path / "denied")], capsys)
+    assert f"cannot write in {tmp_path}: Permission denied" in err
+    err = error_of(["train", smoke, "--run-dir", str(tmp_path / "run")], capsys)
+    assert "cannot write the run folder" in err and "Permission denied" in err
+    assert not (tmp_path / "denied").exists() and not (tmp_path / "run").exists()

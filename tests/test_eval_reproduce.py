@@ -332,7 +332,10 @@ def test_eval_on_a_published_episode_pickle(workspace, capsys):
     out = root / "published"
     assert main(["eval", "oracle", "--episodes", str(cut), "--workers", "1", "--out", str(out)]) == 0
     assert "8 of 9 episodes mapped" in capsys.readouterr().err
-    record = json.loads((out / "val.json").read_text())
+    # Named after the file's episodes, not the protocol's val set (issue 45, point 6).
+    assert sorted(p.name for p in out.iterdir()) == ["bathroom_val.json", "bathroom_val.md"]
+    assert (out / "bathroom_val.md").read_text().startswith("# oracle on bathroom_val (8 episodes)")
+    record = json.loads((out / "bathroom_val.json").read_text())
     assert record["mapping"]["mapped"] == 8 and record["mapping"]["skipped"][0][0] == 8
     assert record["estimates"]["success"]["mean"] == 1.0 and len(record["episodes"][0]) == 8
 

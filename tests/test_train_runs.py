@@ -439,3 +439,43 @@ def test_a_failed_checkpoint_write_says_what_happened_and_keeps_the_previous(tmp
         ckpt.atomic_save({"format": ckpt.FORMAT_VERSION}, run / ckpt.CHECKPOINT_FILE)
     assert (run / ckpt.CHECKPOINT_FILE).read_bytes() == before
     assert not list(run.glob("*.tmp"))
+
+
+def _files(folder: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_a_new_run_refuses_a_folder_that_holds_a_run_or_other_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 45, point 8: a second run into a finished run's folder overwrote its models and mixed its
+    snapshots with the first run's, silently."""
+    config = tmp_path / "train.yaml"
+    config.write_text(yaml.safe_dump({"model": {"name": "a3c", "hidden_size": 16}, "episodes": 4}))
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
+    before = _files(run)
+    assert cli_main(["train", str(config), "--set", "seed=2", "--run-dir", str(run)]) == 2
+    err = capsys.readouterr().err
+    expected = (
+        f"{run} already holds a finished run (checkpoint.pt, final_model.pt, checkpoints/); continue it "
+        f"with `mapless train --resume {run}`"
+    )
+    assert "Traceback" not in err and expected in err
+    assert _files(run) == before  # nothing written, not even config.yaml
+    resumed, state = resume_config(run, ["episodes=8"])  # what the message says works
+    assert train(resumed, run, resume=state, library_factory=fixture_library)["episodes"] == 8
+
+    mine = tmp_path / "mine"  # a folder mapless did not make
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    assert cli_main(["train", str(config), "--run-dir", str(mine)]) == 2
+    assert "is not empty and holds no run (it has notes.txt)" in capsys.readouterr().err
+    assert _files(mine) == {mine / "notes.txt": b"keep me"}
+
+    # A run that wrote no checkpoint (it failed or diverged first) starts over in its folder.
+    failed = tmp_path / "failed"
+    failed.mkdir()
+    (failed / ckpt.CONFIG_FILE).write_text("model: {name: a3c}\n")
+    (failed / ckpt.METRICS_FILE).write_text("")
+    assert train(tiny_config("a3c", "episodes=4"), failed, library_factory=fixture_library)["episodes"] == 4

@@ -113,6 +113,7 @@ def _eval(args: argparse.Namespace) -> int:
     )
     from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
     from mapless.evaluate.selection import evaluate_run, load_episodes
+    from mapless.files import unwritable
 
     path = Path(args.model)
     settings = EvalSettings(
@@ -146,10 +147,15 @@ def _eval(args: argparse.Namespace) -> int:
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
+    # The report is named after the episodes it holds: an episode file's, else the protocol's split.
+    name = _set_name(args.episodes) if args.episodes else eval_split
+    problem = unwritable(out, [f"{name}.json", f"{name}.md"])
+    if problem is not None:  # before the evaluation, whose results would be lost
+        raise MaplessError(f"--out {out}: {problem}; nothing was evaluated")
     # The protocol's success rule, whatever rule the model was trained under (it sees the same
     # observations under both; only success, Done and the optimal lengths change).
     library = dataclasses.replace(library, sim=protocol.sim(library.sim))
-    meta: dict = {"split": eval_split, "protocol": protocol.name}
+    meta: dict = {"split": name, "protocol": protocol.name}
     sets = {"per_room": args.per_room, "library": library, "target_set": target_set}
     if args.episodes is not None and args.episodes.suffix == ".pkl":
         episodes = _published_episodes(args.episodes, library, args.per_room, meta)
@@ -182,7 +188,7 @@ def _eval(args: argparse.Namespace) -> int:
     record = model_record(label, [results], meta)
     text = "\n".join(
         [
-            f"# {label} on {eval_split} ({len(results)} episodes)",
+            f"# {label} on {name} ({len(results)} episodes)",
             "",
             f"Protocol: {meta['protocol_label']}.",
             "",
@@ -194,12 +200,20 @@ def _eval(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    _, text = write_report_files(record, text, out / eval_split)
+    _, text = write_report_files(record, text, out / name)
     print(text)
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "
           f"SR {overall['success']:.3f}; written to {out}", file=sys.stderr)  # fmt: skip
     return 0
+
+
+def _set_name(episodes: Path) -> str:
+    """An episode file's name without its format's suffixes (``kitchen_test_22.pkl``, ``x.json.gz``)."""
+    name = episodes.name
+    for suffix in (".gz", ".json", ".pkl"):
+        name = name.removesuffix(suffix)
+    return name or episodes.name
 
 
 def _compare(args: argparse.Namespace) -> int:

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from mapless.cli.common import SCENES_HELP, add_command, parse_pose, sim_config_from
-from mapless.errors import UnknownNameError
+from mapless.errors import MaplessError, UnknownNameError
+from mapless.files import unwritable
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
 from mapless.scenes.categories import targets
 from mapless.scenes.layout import load_scene
@@ -107,6 +108,9 @@ def _show(args: argparse.Namespace) -> int:
     from mapless.sim.library import SceneLibrary
     from mapless.sim.pictures import draw_top_down, egocentric_view
 
+    problem = unwritable(args.out.parent, [args.out.name])
+    if problem is not None:  # before the scene is built and drawn
+        raise MaplessError(f"--out {args.out}: {problem}")
     config = sim_config_from(args)
     scene = load_scene(args.scene)
     present = sorted({o.type for o in scene.objects})

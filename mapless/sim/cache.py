@@ -20,7 +20,6 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 import warnings
 from importlib import resources
 from pathlib import Path
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mapless.errors import MaplessError
-from mapless.files import replacing
+from mapless.files import replacing, unwritable
 from mapless.scenes.catalogue import canonical_scene
 from mapless.scenes.layout import SCENE_FILE, load_scene
 from mapless.scenes.variants import cache_stem
@@ -85,17 +84,6 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
 def cache_path(scene: str, config: SimConfig, cache_dir: str | Path | None = None) -> Path:
     """Where ``scene``'s file lives under the cache root ``cache_dir`` (see :func:`scenes_dir`)."""
     return scenes_dir(cache_dir) / fingerprint(config) / f"{cache_stem(canonical_scene(scene))}.npz"
-
-
-def unwritable(folder: Path) -> str | None:
-    """Why no file can be written in ``folder`` (made if missing), or None when one can."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
-            pass
-    except OSError as error:
-        return f"{type(error).__name__}: {error.strerror or error}"
-    return None
 
 
 def save(data: SceneData, path: Path, config: SimConfig) -> None:

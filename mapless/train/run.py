@@ -12,6 +12,7 @@ from pathlib import Path
 from mapless import checkpoint as ckpt
 from mapless.config import ConfigError, apply_overrides, from_dict, save_config
 from mapless.errors import MaplessError
+from mapless.files import unwritable
 from mapless.provenance import provenance_comment
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
@@ -78,6 +79,33 @@ def remove_torn_writes(run_dir: Path) -> None:
             torn.unlink(missing_ok=True)
 
 
+def run_folder_problem(run_dir: Path, resuming: bool) -> str | None:
+    """Why a trainer may not write into ``run_dir`` (None: it may), checked before any work. A new
+    run takes a missing or empty folder, or one whose run wrote no checkpoint (it starts over); a
+    folder that holds a run's models is continued with ``--resume`` only, and one that mapless did
+    not make is left alone: a new run would overwrite the models in either, or mix its files in."""
+    unusable = unwritable(run_dir)
+    if unusable is not None:
+        return f"cannot write the run folder {run_dir}: {unusable}"
+    if resuming or not run_dir.is_dir():
+        return None
+    names = {p.name for p in run_dir.iterdir()} - {LOCK_FILE}
+    models = sorted(names & {ckpt.CHECKPOINT_FILE, ckpt.FINAL_MODEL_FILE})
+    models += [f"{ckpt.SNAPSHOT_DIR}/"] if ckpt.snapshots(run_dir) else []
+    if models:
+        kind = "a finished run" if ckpt.FINAL_MODEL_FILE in names else "a run"
+        return (
+            f"{run_dir} already holds {kind} ({', '.join(models)}); continue it with `mapless train "
+            f"--resume {run_dir}`, or train into another folder (a new run would overwrite it)"
+        )
+    if names and ckpt.CONFIG_FILE not in names:
+        return (
+            f"{run_dir} is not empty and holds no run (it has {', '.join(sorted(names)[:3])}); train into "
+            "a new or empty folder"
+        )
+    return None
+
+
 def _remove_if_unused(run_dir: Path) -> Callable[..., bool]:
     """An exit callback that deletes the run folder this call made when the run fails before
     writing anything but its config and lock (a bad scene root, a scene that cannot load): a folder
@@ -112,7 +140,12 @@ def train(
         )
     with contextlib.ExitStack() as stack:
         stack.callback(dist.shutdown, ctx)
-        run_dir = Path(dist.broadcast_object(str(run_dir), ctx))
+        # Checked on rank 0, which writes the folder, and raised on every rank (none waits for it).
+        problem = run_folder_problem(Path(run_dir), resume is not None) if ctx.is_main else None
+        shown, problem = dist.broadcast_object((str(run_dir), problem), ctx)
+        run_dir = Path(shown)
+        if problem is not None:
+            raise MaplessError(problem)
         if resume is not None and ckpt.model_config_of(resume) != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if ctx.is_main:
