@@ -110,15 +110,15 @@ def load_file(path: str | Path, map_location: str | torch.device = "cpu") -> dic
     problem = _malformed(payload)
     if problem:  # a digest proves no origin (anyone can compute one), so the structure is checked too
         raise CheckpointError(f"{path} is not a valid mapless checkpoint: {problem}")
-    return payload
-
-
     diverged = next((k for k, v in payload["model"].items() if not torch.isfinite(v).all()), None)
     if diverged is not None:  # NaN weights act (and score SR 0) as if they were a model
         raise CheckpointError(
             f"{path} holds a diverged model: its weight {diverged!r} has NaN or infinite values; it is "
             "neither evaluated nor resumed (an earlier snapshot in checkpoints/ may be finite)"
         )
+    return payload
+
+
 def _malformed(payload: dict) -> str | None:
     """What is wrong with the structure of a checkpoint's payload, or None."""
     if payload.get("kind") not in ("model", "checkpoint"):
