@@ -146,6 +146,25 @@ def test_an_episode_pickle_with_bad_task_data_skips_the_entry_with_a_reason(tmp_
     assert "0 of 2 episodes mapped, 2 skipped" in capsys.readouterr().out
 
 
+def test_an_episode_pickle_with_a_nan_start_skips_the_entry_with_a_reason(tmp_path, capsys):
+    """A dict state with x = z = NaN was mapped to an arbitrary start (issue 45, point 9)."""
+    path = tmp_path / "nan.pkl"
+    entry = {"scene": "FloorPlan1", "goal_object_type": "Mug", "task_data": ["Mug|+1.00|+0.90|+1.00"]}
+    nan, inf = float("nan"), float("inf")
+    states = [
+        {"x": nan, "y": 0.9, "z": nan, "rotation": 90, "horizon": 0},
+        {"x": 1.0, "y": 0.9, "z": inf, "rotation": 90, "horizon": 0},
+        "nan|nan|90|0",
+    ]
+    path.write_bytes(pickle.dumps([{**entry, "state": state} for state in states]))
+    episodes, bad = read_episode_file(path)
+    assert not episodes and [i for i, _ in bad] == [0, 1, 2]
+    assert all("no finite x, z" in reason or "is not 'x|z|rotation|horizon'" in reason for _, reason in bad)
+    assert main(["interop", "episodes-import", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "0 of 3 episodes mapped" in out and "3 skipped" in out
+
+
 # ------------------------------------------------------------------------------ offline folders
 
 

@@ -67,6 +67,8 @@ def _start_of(state: Any) -> tuple[float, float, int, int]:
         if not all(isinstance(v, int | float | np.number) for v in numbers):
             raise TypeError
         x, z, rotation, horizon = (float(v) for v in numbers)
+        if not (np.isfinite(x) and np.isfinite(z)):  # round() keeps a NaN, which maps anywhere
+            raise ValueError
         return round(x, 2), round(z, 2), round(rotation), round(horizon)
     except (KeyError, TypeError, ValueError, OverflowError):  # round() of inf or NaN included
         shown = state if isinstance(state, Placeholder | str) else type(state).__name__
