@@ -334,3 +334,27 @@ def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monke
     err = error_of(["train", smoke, "--run-dir", str(tmp_path / "run")], capsys)
     assert "cannot write the run folder" in err and "Permission denied" in err
     assert not (tmp_path / "denied").exists() and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "model.hidden_size=-1",
+        "model.hidden_size=0",
+        "model.fusion_channels=0",
+        "model.feature_channels=0",
+        "model.interaction_steps=0",
+        "model.gcn_hidden=0",
+        "model.max_inner_updates=-1",
+        "model.dropout=1",
+        "model.dropout=nan",
+    ],
+)
+def test_an_impossible_model_size_is_a_config_error(override, tmp_path, capsys):
+    """A RuntimeError traceback from torch, or (0) a model without units that trained (issue 45, 15)."""
+    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    for model in ("a3c", "savn", "mjolnir_o", "cvmeta"):
+        argv = ["train", smoke, "--set", f"model.name={model}", "--set", override]
+        err = error_of([*argv, "--runs-root", str(tmp_path)], capsys)
+        assert f"config key '{override.split('=')[0]}': must " in err
+    assert not list(tmp_path.iterdir())

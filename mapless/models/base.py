@@ -107,8 +107,18 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.adapt not in (None, *ADAPT_MODES):
             raise ConfigError(f"config key 'model.adapt': {self.adapt!r} is not one of {ADAPT_MODES}")
-        if self.gcn_hidden is not None and self.gcn_hidden < 1:
-            raise ConfigError(f"config key 'model.gcn_hidden': {self.gcn_hidden} is not a positive width")
+        # Checked here, not by torch mid-build: a width below 1 is a RuntimeError there, and 0 a
+        # model without units that trains without complaint.
+        for key in ("hidden_size", "fusion_channels", "interaction_steps", "feature_channels", "gcn_hidden"):
+            value = getattr(self, key)
+            if value is not None and value < 1:
+                raise ConfigError(f"config key 'model.{key}': must be >= 1, got {value}")
+        if self.max_inner_updates < 0:
+            raise ConfigError(
+                f"config key 'model.max_inner_updates': must be >= 0, got {self.max_inner_updates}"
+            )
+        if not 0 <= self.dropout < 1:  # NaN included; 1 would drop every unit
+            raise ConfigError(f"config key 'model.dropout': must lie in [0, 1), got {self.dropout}")
 
 
 class NavModel(nn.Module):
