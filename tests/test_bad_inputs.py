@@ -165,6 +165,14 @@ def test_an_episode_pickle_with_a_nan_start_skips_the_entry_with_a_reason(tmp_pa
     assert "0 of 3 episodes mapped" in out and "3 skipped" in out
 
 
+def test_an_arrangement_file_of_a_few_bytes_cannot_claim_gigabytes(tmp_path, capsys):
+    """Nine bytes made the arrangement reader die with a MemoryError (issue 45, point 16)."""
+    path = tmp_path / "a.pkl"
+    path.write_bytes(b"\x80\x02}r\xff\xff\xff\xff.")  # a memo index of 2**32: a 64 GiB memo table
+    err = error_of(["scenes", "variants", str(path)], capsys)
+    assert f"{path}: not an arrangement file in the rearrangement dataset's format" in err
+
+
 # ------------------------------------------------------------------------------ offline folders
 
 

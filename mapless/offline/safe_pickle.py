@@ -26,7 +26,7 @@ def load_untrusted(data: bytes) -> Any:
     """The object a pickle holds, with every global outside the allow-list a :class:`Placeholder`
     and every array rebuilt from plain numeric states. Raises whatever a crafted file makes the
     allowed constructors raise (callers turn it into their format error)."""
-    _check_opcodes(data)
+    check_opcodes(data)
     return _materialize(_RestrictedUnpickler(io.BytesIO(data)).load())
 
 
@@ -187,7 +187,7 @@ def _reconstructor(cls: Any, base: Any, state: Any) -> Any:
 _RECONSTRUCTOR_BASES = (object, list, dict, tuple, set, frozenset, int, float, str)
 
 
-def _check_opcodes(data: bytes) -> None:
+def check_opcodes(data: bytes) -> None:
     """Walk the pickle's opcodes before the C unpickler runs: a length that runs past the end of the
     data, or a memo index beyond the objects stored so far, is refused here, because the unpickler
     would first allocate what it claims (gigabytes from a few bytes of a damaged file)."""

@@ -26,6 +26,7 @@ from importlib import resources
 from pathlib import Path
 
 from mapless.errors import MaplessError
+from mapless.offline.safe_pickle import check_opcodes
 
 BUILTIN_SOURCES = {"rearrange2023": "variants/rearrange2023_train.pkl.gz"}
 PHASES = {"target": ("target_poses", "target_openness"), "start": ("starting_poses", "start_openness")}
@@ -96,6 +97,7 @@ def _read(path: str, _mtime: int, _size: int) -> dict[str, list[dict]]:
     try:
         if raw[:2] == b"\x1f\x8b":
             raw = gzip.decompress(raw)
+        check_opcodes(raw)  # a few bytes may claim gigabytes (the episode reader's guard)
         data = _PlainValues(io.BytesIO(raw)).load()
     except (
         pickle.UnpicklingError,
