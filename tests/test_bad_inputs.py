@@ -366,3 +366,10 @@ def test_an_impossible_model_size_is_a_config_error(override, tmp_path, capsys):
         err = error_of([*argv, "--runs-root", str(tmp_path)], capsys)
         assert f"config key '{override.split('=')[0]}': must " in err
     assert not list(tmp_path.iterdir())
+
+
+def test_an_experiment_of_no_model_is_a_config_error(tmp_path, capsys):
+    """It trained nothing and wrote an empty Table 1, exit 0 (issue 45, point 18)."""
+    argv = ["reproduce", "table1", "--budget", "smoke", "--set", "models=[]", "--reports", str(tmp_path)]
+    assert "config key 'models': the list is empty" in error_of(argv, capsys)
+    assert not list(tmp_path.iterdir())

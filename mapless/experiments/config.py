@@ -143,6 +143,8 @@ class ExperimentConfig:
             raise UnknownNameError("experiment", self.experiment, EXPERIMENTS)
         if self.seeds < 1:
             raise ConfigError(f"config key 'seeds': must be >= 1, got {self.seeds}")
+        if not self.models:  # an experiment of no model trains nothing and reports an empty table
+            raise ConfigError("config key 'models': the list is empty; name at least one model")
         from mapless.models import MODELS
 
         for name in (*self.models, self.focus, *self.per_model):
