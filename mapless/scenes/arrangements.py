@@ -19,6 +19,7 @@ import gzip
 import hashlib
 import io
 import json
+import math
 import pickle
 import zlib
 from dataclasses import dataclass
@@ -145,8 +146,11 @@ def arrangement_of(source: str, floor_plan: str, index: int, phase: str = "targe
         openness = tuple(
             sorted((str(o["name"]), float(o[open_key])) for o in episode.get("openable_data") or [])
         )
-    except (KeyError, TypeError, ValueError) as error:
+    except (KeyError, TypeError, ValueError, OverflowError) as error:  # float(10**400) overflows
         raise MaplessError(
             f"{where}: malformed pose or openness entry ({type(error).__name__}: {error})"
         ) from None
+    numbers = [v for p in poses for v in (*p.position, *p.rotation)] + [v for _, v in openness]
+    if not all(math.isfinite(v) for v in numbers):  # a NaN pose would place an object nowhere
+        raise MaplessError(f"{where}: a pose or openness that is not a finite number")
     return Arrangement(floor_plan, poses, openness)
