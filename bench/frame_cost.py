@@ -35,12 +35,13 @@ def build(model: str, overrides: list[str]):
     from mapless.config import apply_overrides, from_dict
     from mapless.train.config import TrainConfig
     from mapless.train.ppo import PPOTrainer
+    from mapless.train.recipes import with_recipe
     from mapless.train.segments import SegmentCollector
 
     data = yaml.safe_load(PPO_CONFIG.read_text())
     data["model"] = {"name": model}
     data.update(progress=False, threads=0)
-    trainer = PPOTrainer(from_dict(TrainConfig, apply_overrides(data, overrides)), None)
+    trainer = PPOTrainer(from_dict(TrainConfig, with_recipe(apply_overrides(data, overrides))), None)
     trainer._setup(None)
     assert isinstance(trainer.collector, SegmentCollector)
     return trainer

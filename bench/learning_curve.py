@@ -40,6 +40,7 @@ def run_config(run: str, overrides: list[str]):
 
     from mapless.config import apply_overrides, from_dict
     from mapless.train.config import TrainConfig
+    from mapless.train.recipes import with_recipe
 
     name, *own = run.split()
     model, _, recipe = name.partition("@")
@@ -50,7 +51,7 @@ def run_config(run: str, overrides: list[str]):
     elif recipe not in ("", "ppo"):
         raise SystemExit(f"unknown recipe {recipe!r} in {run!r}: use MODEL or MODEL@a3c")
     data.update(threads=1, progress=False)
-    return from_dict(TrainConfig, apply_overrides(data, [*overrides, *own]))
+    return from_dict(TrainConfig, with_recipe(apply_overrides(data, [*overrides, *own])))
 
 
 def val_subset(count: int, split: str = "val"):

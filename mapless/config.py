@@ -141,6 +141,15 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
+def merge_mappings(base: dict, top: dict) -> dict:
+    """``top`` read over ``base`` key by key, nested mappings included (neither is modified)."""
+    out = dict(base)
+    for key, value in top.items():
+        nested = isinstance(value, dict) and isinstance(out.get(key), dict)
+        out[key] = merge_mappings(out[key], value) if nested else value
+    return out
+
+
 def read_mapping(path: str | Path) -> dict:
     """The top-level mapping of a YAML config file, or a ConfigError saying why there is none."""
     path = Path(path)

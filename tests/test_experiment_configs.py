@@ -3,7 +3,9 @@ exactly the configuration the one-file-per-experiment-and-budget layout gave (ca
 tests/data/experiment_configs_resolved.json before the split; since then only the small budget's
 imitation warm start and every baseline's target_context, the layout-shift experiment and the
 fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
-time-limit bootstrap), and the composition rules."""
+time-limit bootstrap; on 2026-12-06 the ablation experiment, ``eval.select_per_room`` and the move of
+the models' settings into experiments/recipes/laptop.yaml, which left every run folder where it was:
+tests/data/run_folders.json), and the composition rules."""
 
 from __future__ import annotations
 
@@ -23,8 +25,14 @@ from mapless.experiments import (
     train_config,
 )
 from mapless.experiments.config import read_budget
+from mapless.experiments.runs import run_dir_for
+from mapless.models import MODELS
 
-RESOLVED = json.loads((Path(__file__).parent / "data" / "experiment_configs_resolved.json").read_text())
+DATA = Path(__file__).parent / "data"
+RESOLVED = json.loads((DATA / "experiment_configs_resolved.json").read_text())
+#: The run folder of seed 1 of every trained model (and ablation row) of the small and medium
+#: experiments under both protocols, captured 2026-12-06: a refactor of the configs must not move one.
+RUN_FOLDERS = json.loads((DATA / "run_folders.json").read_text())
 
 
 #: Every shipped experiment file (layout_shift has none at the full budget).
@@ -94,3 +102,29 @@ def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path
     (tmp_path / "medium.yaml").write_text("extends: large\n")
     with pytest.raises(UnknownNameError, match="large"):
         read_budget("medium", tmp_path)
+
+
+def _run_folders() -> dict[str, str]:
+    folders = {}
+    for experiment in ("table1", "table2", "table3", "layout_shift", "ablation"):
+        for budget in ("small", "medium"):
+            if not config_path(experiment, budget).is_file():
+                continue
+            for protocol in ("standard", "reference"):
+                overrides = [f"eval.protocol={protocol}", "train.threads=1"]
+                config = load_experiment(experiment, budget, overrides=overrides)
+                rows = {m: None for m in sorted({*config.models, config.focus} - {"random"})}
+                if experiment == "ablation":
+                    rows |= {name: row.train for name, row in config.ablation_table().items() if row.train}
+                for name, extra in rows.items():
+                    model = config.focus if name not in MODELS else name
+                    cfg = train_config(config, model, 1, extra)
+                    variant = "all" if name in MODELS else f"ablation-{name}"
+                    folders[f"{experiment} {budget} {protocol} {name}"] = run_dir_for(
+                        config, cfg, variant
+                    ).name
+    return folders
+
+
+def test_every_shipped_run_keeps_its_folder() -> None:
+    assert _run_folders() == RUN_FOLDERS

@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 from mapless.cli.common import add_command
-from mapless.config import load_config
 from mapless.episodes.protocols import PROTOCOLS
 
 
@@ -47,7 +46,7 @@ def _train(args: argparse.Namespace) -> int:
     """Train a model: recurrent PPO, or the references' batched or async A3C (docs/training.md).
     Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
-    from mapless.train.config import TrainConfig
+    from mapless.train.recipes import load_train_config
     from mapless.train.run import default_run_dir, resume_config, train
 
     overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
@@ -63,7 +62,7 @@ def _train(args: argparse.Namespace) -> int:
     else:
         if args.config is None:
             raise ConfigError("mapless train needs CONFIG.yaml (or --resume RUN_DIR)")
-        config = load_config(TrainConfig, args.config, overrides)
+        config = load_train_config(args.config, overrides)
         state = None
         run_dir = args.run_dir or default_run_dir(config, args.runs_root, args.config.stem)
     summary = train(config, run_dir, resume=state)

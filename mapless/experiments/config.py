@@ -16,7 +16,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from mapless.config import ConfigError, apply_overrides, from_dict, read_mapping
+from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -223,7 +223,7 @@ def read_budget(budget: str, directory: Path | None = None, _extending: tuple[st
     chain = (*_extending, budget)
     if base in chain:
         raise ConfigError(f"{path}: budgets cannot extend in a circle ({' -> '.join((*chain, base))})")
-    return _merge(read_budget(base, directory, chain), data)
+    return merge_mappings(read_budget(base, directory, chain), data)
 
 
 def load_experiment(
@@ -263,10 +263,11 @@ def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | 
     """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and
     seed, and the success rule of the evaluation protocol (a run learns the rule it is scored by)."""
     from mapless.train.config import TrainConfig
+    from mapless.train.recipes import with_recipe
 
     data = json.loads(json.dumps(config.train))
     for layer in (config.per_model.get(model, {}), extra or {}):
-        data = _merge(data, layer)
+        data = merge_mappings(data, layer)
     visibility = get_protocol(config.eval.protocol).visibility_distance
     stated = data.get("env", {}).get("sim", {}).get("visibility_distance", visibility)
     if stated != visibility:
@@ -277,13 +278,4 @@ def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | 
     data = apply_overrides(
         data, [f"model.name={model}", f"seed={seed}", f"env.sim.visibility_distance={visibility}"]
     )
-    return from_dict(TrainConfig, data)
-
-
-def _merge(base: dict, top: dict) -> dict:
-    out = dict(base)
-    for key, value in top.items():
-        out[key] = (
-            _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-        )
-    return out
+    return from_dict(TrainConfig, with_recipe(data))

@@ -1,0 +1,59 @@
+"""Named training recipes: how each model trains, written once and read by `mapless train` and by
+the experiments' budgets alike (no copied config).
+
+A recipe is ``experiments/recipes/<name>.yaml``: ``train`` (training-config keys every model gets)
+and ``per_model`` (keys per model name). A training config that says ``recipe: NAME`` is read over
+it: the recipe's ``train``, then its ``per_model`` entry for the config's model, then the config's
+own keys, nested mappings key by key. What a run then holds is an ordinary training config; the
+recipe's name is not kept (its keys are), so a run folder's config says everything it trained with.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
+from mapless.errors import UnknownNameError
+from mapless.models import ModelConfig
+from mapless.train.config import TrainConfig
+
+
+def recipes_dir() -> Path:
+    """``experiments/recipes`` of the repository."""
+    return Path(str(resources.files("mapless"))).parent / "experiments" / "recipes"
+
+
+def recipe_names(directory: Path | None = None) -> tuple[str, ...]:
+    return tuple(sorted(p.stem for p in (directory or recipes_dir()).glob("*.yaml")))
+
+
+def with_recipe(data: dict, directory: Path | None = None) -> dict:
+    """A training-config mapping read over the recipe it names (unchanged if it names none)."""
+    if "recipe" not in data:
+        return data
+    data = dict(data)
+    name = data.pop("recipe")
+    if name is None:
+        return data
+    directory = directory or recipes_dir()
+    path = directory / f"{name}.yaml"
+    if not path.is_file():
+        raise UnknownNameError("recipe", str(name), recipe_names(directory))
+    recipe = read_mapping(path)
+    unknown = set(recipe) - {"train", "per_model"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown recipe key {sorted(unknown)[0]!r}; valid: per_model, train")
+    model = (data.get("model") or {}).get("name", ModelConfig.name)
+    layers = (recipe.get("train") or {}, (recipe.get("per_model") or {}).get(model) or {}, data)
+    out: dict = {}
+    for layer in layers:
+        out = merge_mappings(out, layer)
+    return out
+
+
+def load_train_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
+    """A training config file with ``--set`` overrides, read over its recipe (overrides apply first,
+    so ``--set model.name=X`` picks model X's recipe)."""
+    data = read_mapping(path) if path is not None else {}
+    return from_dict(TrainConfig, with_recipe(apply_overrides(data, overrides or [])))
