@@ -477,5 +477,7 @@ def test_a_new_run_refuses_a_folder_that_holds_a_run_or_other_files(
     failed = tmp_path / "failed"
     failed.mkdir()
     (failed / ckpt.CONFIG_FILE).write_text("model: {name: a3c}\n")
-    (failed / ckpt.METRICS_FILE).write_text("")
+    (failed / ckpt.METRICS_FILE).write_text('{"episodes": 2, "frames": 9}\n')  # its records go
     assert train(tiny_config("a3c", "episodes=4"), failed, library_factory=fixture_library)["episodes"] == 4
+    records = [json.loads(line) for line in (failed / ckpt.METRICS_FILE).read_text().splitlines()]
+    assert [r["episodes"] for r in records] == [4]

@@ -102,10 +102,11 @@ class RunMonitor:
 
         # A resumed run continues from a checkpoint at ``episodes``, which was written after that
         # count's record: records beyond it (written before the run was killed) are dropped from
-        # both logs, and the resumed run writes them again.
-        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1 if episodes else None)
+        # both logs, and the resumed run writes them again. A new run (at 0 episodes) in the folder
+        # of one that wrote no checkpoint, which starts over there, drops all of that run's records.
+        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1)
         metrics = Path(run_dir) / METRICS_FILE
-        if episodes and metrics.is_file():
+        if metrics.is_file():
             write_text(metrics, "".join(_records_up_to(metrics, episodes)))
         self._jsonl = open(metrics, "a")  # noqa: SIM115 - kept open for the run
         self._by_frames = budget_episodes == 0
