@@ -1,13 +1,17 @@
 """SAVN's meta-learning inner loop, batched over episodes with per-episode fast weights.
 
-Within an episode, after every k interaction steps (k = 6, at most 4 times; never after the step that
-ends the episode) the adapted parameters θ take one SGD step on the learned interaction loss:
+Within an episode, after every k interaction steps (``model.interaction_steps``, k = 6; at most
+``model.max_inner_updates`` = 4 times; never after the step that ends the episode) the adapted
+parameters θ take one SGD step on the learned interaction loss:
 
     θ_{i+1} = θ_i - α ∇_θ L_int^φ(rows_i; θ_i),   rows_i = the last k rows [h_t || π_t] (acted with θ_i)
 
-and the outer loss is the A3C loss of the whole episode, each step evaluated with the θ_i that acted
-(the paper's eq. 3/5). Every episode b owns its fast weights θ^b; because episode b's interaction loss
-depends only on θ^b, one ``autograd.grad`` of Σ_b L_int^b gives every episode's own gradient.
+and the trainer's outer loss reads the episode's steps, each evaluated with the θ_i that acted. That
+is SAVN's code. The paper's eq. 3/5 writes one adaptation after the first k steps and the navigation
+loss on the rest of the trajectory: ``max_inner_updates = 1`` here, with the trainer's outer loss
+restricted to the steps after the first k (PPO's ``meta.navigation_loss: after_interaction``).
+Every episode b owns its fast weights θ^b; because episode b's interaction loss depends only on θ^b,
+one ``autograd.grad`` of Σ_b L_int^b gives every episode's own gradient.
 
 Representation of θ^b (:mod:`mapless.agent.fast_weights`): the LSTM matrices' per-episode updates
 in low rank, the δ from ``autograd.grad`` w.r.t. the recorded gate pre-activations (with
@@ -17,7 +21,7 @@ broadcast view of θ_0 (no copy until the first update).
 
 Meta-gradients (:meth:`InnerLoop.backward`):
 
-* ``second_order`` (default, SAVN): backpropagate the outer loss through every inner step
+* ``second_order`` (default, SAVN; the exact gradient of eq. 3/5): backpropagate the outer loss through every inner step
   (``create_graph=True``); θ_0 receives ``Π(I - α H_int) ∇L_nav`` terms and φ receives gradient only
   through the inner steps.
 * ``first_order`` (the first-order Taylor form, eq. 4: L_nav(θ) - α <∇L_int^φ(θ), ∇L_nav(θ)>): the
