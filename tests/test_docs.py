@@ -21,3 +21,19 @@ def test_the_docs_name_no_folder_of_the_machine_they_were_written_on() -> None:
         for match in [*MACHINE_PATH.findall(line), *([str(REPO)] if str(REPO) in line else [])]
     ]
     assert not found, "\n".join(found)
+
+
+def test_every_promise_of_the_guarantees_names_tests_that_exist() -> None:
+    """docs/guarantees.md lists each promise beside the tests that enforce it (issue 45)."""
+    text = (REPO / "docs" / "guarantees.md").read_text()
+    promises = re.findall(r"(?ms)^- .*?(?=^- |^\n|^## |\Z)", text)
+    assert len(promises) > 30
+    untested = [p.splitlines()[0] for p in promises if "tests/" not in p]
+    assert not untested, untested
+    named = re.findall(r"tests/(test_\w+\.py)::(test_\w+)", text)
+    missing = [
+        f"{file}::{test}"
+        for file, test in named
+        if not re.search(rf"^def {test}\(", (REPO / "tests" / file).read_text(), re.MULTILINE)
+    ]
+    assert not missing, missing
