@@ -1,23 +1,18 @@
 """One divergence rule for every trainer (mapless/train/gradients.py ``check_finite``): batched A3C,
-PPO, Hogwild and torchrun ranks stop at a NaN or infinite gradient before the optimizer step, the
-checkpoint on disk stays the last good state, and the message never promises a checkpoint that the
-run did not write (issue 45, points 2, 11 and 17)."""
+PPO and Hogwild stop at a NaN or infinite gradient before the optimizer step, the checkpoint on disk
+stays the last good state, and the message never promises a checkpoint that the run did not write
+(issue 45, points 2, 11 and 17). torchrun ranks: tests/test_train_distributed.py."""
 
 from __future__ import annotations
 
-import os
-import socket
 from pathlib import Path
 
 import pytest
 import torch
-import torch.multiprocessing as mp
 from train_fixtures import fixture_library, tiny_config
 
 from mapless import checkpoint as ckpt
 from mapless.errors import TrainingDiverged
-from mapless.train import distributed as dist
-from mapless.train.batched import BatchedTrainer
 from mapless.train.gradients import check_finite
 from mapless.train.run import resume_config, train
 
@@ -69,39 +64,3 @@ def test_divergence_before_the_first_checkpoint_promises_none(tmp_path: Path, tr
         train(config, run, library_factory=fixture_library)
     assert "still holds" not in str(error.value)
     assert not (run / ckpt.CHECKPOINT_FILE).exists() and not ckpt.snapshots(run)
-
-
-WORLD = 2
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _diverging_rank(rank: int, port: int, out: str) -> None:
-    os.environ.update(
-        MASTER_ADDR="127.0.0.1",
-        MASTER_PORT=str(port),
-        RANK=str(rank),
-        LOCAL_RANK=str(rank),
-        WORLD_SIZE=str(WORLD),
-    )
-    # Only rank 1's episodes diverge: the all-reduced gradient carries its NaN to rank 0.
-    config = tiny_config("a3c", "batch_size=2", "episodes=400", *([DIVERGING] if rank == 1 else []))
-    ctx = dist.init_distributed(config.device)
-    try:
-        BatchedTrainer(config, Path(out) / "run", fixture_library, ctx).run()
-        outcome = "finished"
-    except TrainingDiverged as error:
-        outcome = str(error)
-    finally:
-        dist.shutdown(ctx)
-    Path(out, f"rank{rank}.txt").write_text(outcome)
-
-
-def test_every_torchrun_rank_stops_at_a_divergence_on_one_of_them(tmp_path: Path) -> None:
-    mp.spawn(_diverging_rank, args=(_free_port(), str(tmp_path)), nprocs=WORLD, join=True)
-    outcomes = [(tmp_path / f"rank{r}.txt").read_text() for r in range(WORLD)]
-    assert all("at update 1 " in o and "before the run wrote its first checkpoint" in o for o in outcomes)

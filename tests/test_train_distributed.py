@@ -12,6 +12,7 @@ import torch.multiprocessing as mp
 from train_fixtures import fixture_library, tiny_config
 
 from mapless import checkpoint as ckpt
+from mapless.errors import TrainingDiverged
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 
@@ -24,7 +25,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _rank(rank: int, port: int, out: str) -> None:
+def _as_torchrun_would(rank: int, port: int) -> None:
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -32,6 +33,10 @@ def _rank(rank: int, port: int, out: str) -> None:
         LOCAL_RANK=str(rank),
         WORLD_SIZE=str(WORLD),
     )
+
+
+def _rank(rank: int, port: int, out: str) -> None:
+    _as_torchrun_would(rank, port)
     config = tiny_config("savn", "batch_size=2", f"episodes={3 * 2 * WORLD}", "checkpoint_every=4")
     ctx = dist.init_distributed(config.device)
     try:
@@ -86,3 +91,27 @@ def test_gradients_missing_on_every_rank_stay_missing(tmp_path: Path) -> None:
         assert torch.equal(mean, torch.full((3,), 1.5))
         assert torch.equal(partial, torch.full((3,), 2.0))  # a missing gradient counts as zeros
         assert missing is None  # so that the optimizer skips it, as in one process
+
+
+def _diverging_rank(rank: int, port: int, out: str) -> None:
+    _as_torchrun_would(rank, port)
+    # Only rank 1's episodes diverge (a finite but absurd penalty: the value loss overflows, the
+    # gradient becomes NaN): the all-reduced gradient carries its NaN to rank 0.
+    config = tiny_config("a3c", "batch_size=2", "episodes=400", *(["env.step_penalty=-1e38"] if rank else []))
+    ctx = dist.init_distributed(config.device)
+    try:
+        BatchedTrainer(config, Path(out) / "run", fixture_library, ctx).run()
+        outcome = "finished"
+    except TrainingDiverged as error:
+        outcome = str(error)
+    finally:
+        dist.shutdown(ctx)
+    Path(out, f"rank{rank}.txt").write_text(outcome)
+
+
+def test_every_rank_stops_at_a_divergence_on_one_of_them(tmp_path: Path) -> None:
+    """The divergence rule of every trainer (tests/test_divergence.py), on the all-reduced gradient:
+    no rank steps on, none waits for the others at a collective (issue 45, point 2)."""
+    mp.spawn(_diverging_rank, args=(_free_port(), str(tmp_path)), nprocs=WORLD, join=True)
+    outcomes = [(tmp_path / f"rank{r}.txt").read_text() for r in range(WORLD)]
+    assert all("at update 1 " in o and "before the run wrote its first checkpoint" in o for o in outcomes)
