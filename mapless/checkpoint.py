@@ -6,6 +6,8 @@ A run folder holds::
     config.yaml                 the resolved TrainConfig (every default written out)
     events.out.tfevents.*       TensorBoard logs
     metrics.jsonl               the same scalars, one JSON line per log interval
+    progress.json               episodes, frames and running success so far, rewritten every few
+                                seconds (what ``mapless reproduce`` shows of runs in other processes)
     checkpoint.pt               the latest resumable state (model, optimizer, RNG states, counters, config)
     checkpoints/model_<episodes>.pt   a model snapshot per checkpoint (what evaluation selects from)
     final_model.pt              the model at the end of the budget
@@ -40,6 +42,7 @@ C = TypeVar("C")
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.jsonl"
+PROGRESS_FILE = "progress.json"
 CHECKPOINT_FILE = "checkpoint.pt"
 FINAL_MODEL_FILE = "final_model.pt"
 SNAPSHOT_DIR = "checkpoints"

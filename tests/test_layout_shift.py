@@ -173,9 +173,11 @@ eval:
 """
     )
     reports = root / "reports"
-    assert main(["reproduce", "layout_shift", "--config", str(config), "--reports", str(reports)]) == 0
+    command = ["reproduce", "layout_shift", "--config", str(config), "--reports", str(reports), "--jobs", "1"]
+    assert main(command) == 0
     out = capsys.readouterr().out
-    assert "[run 1 of 2] a3c default arrangements" in out and "[run 2 of 2] a3c variants arrangements" in out
+    # Table 1's run ("all"), then the one on scene variants ("layouts").
+    assert "[run 1 of 2] a3c all, seed 1" in out and "[run 2 of 2] a3c layouts, seed 1" in out
     payload = json.loads((reports / "layout_shift" / "layout_shift.json").read_text())
     labels = [m["model"] for m in payload["models"]]
     assert labels == [

@@ -82,8 +82,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "reproduce",
         _reproduce,
         help="train, select, evaluate and report one of the paper's experiments",
-        description="Experiments: table1, table2, table3, figure3, figures45, layout_shift. Writes "
-        "reports/EXPERIMENT/.",
+        description=f"Experiments: {', '.join(EXPERIMENTS)}. Trains the runs (side by side on this "
+        "machine, or as Slurm jobs), then selects, evaluates and writes reports/EXPERIMENT/. A run "
+        "already finished is reused and an interrupted one resumes: the same command goes on where a "
+        "stopped or killed one ended.",
     )
     rep.add_argument("experiment", choices=EXPERIMENTS)
     rep.add_argument("--budget", choices=BUDGETS, default="smoke")
@@ -100,6 +102,38 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "under the 1.5 m rule and its report goes to reports/EXPERIMENT-reference",
     )
     rep.add_argument("--reports", type=Path, default=Path("reports"))
+    rep.add_argument(
+        "--jobs",
+        type=positive_int,
+        help="runs trained side by side, each in a process with its share of the cores (default: one "
+        "per core, or per train.threads cores; 1: in this process, one after another)",
+    )
+    rep.add_argument(
+        "--launcher",
+        choices=("local", "slurm"),
+        default="local",
+        help="local: this machine; slurm: each run a Slurm job through submitit (pip install -c "
+        'constraints.txt -e ".[cluster]"; docs/training.md, "On a cluster")',
+    )
+    slurm = rep.add_argument_group("Slurm (--launcher slurm)")
+    slurm.add_argument("--partition", help="the jobs' partition (default: the cluster's)")
+    slurm.add_argument(
+        "--time",
+        type=positive_int,
+        metavar="MINUTES",
+        help="each job's time limit (default: the budget's max_seconds plus 30 minutes; a day without one)",
+    )
+    slurm.add_argument(
+        "--cpus-per-job", type=positive_int, default=2, help="CPUs (and torch threads) per run"
+    )
+    slurm.add_argument(
+        "--gpus-per-job", type=int, default=0, help="GPUs per run (with --set train.device=cuda)"
+    )
+    slurm.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="submit and return; the same command later collects the finished runs and reports",
+    )
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -283,6 +317,24 @@ def _reproduce(args: argparse.Namespace) -> int:
         parts += ["--set", item]
     if args.reports != Path("reports"):
         parts += ["--reports", str(args.reports)]
-    result = reproduce(config, args.reports, command=shlex.join(parts))
-    print(result["markdown"])
+    result = reproduce(config, args.reports, command=shlex.join(parts), launcher=_launcher(args))
+    if result is not None:
+        print(result["markdown"])
     return 0
+
+
+def _launcher(args: argparse.Namespace):
+    """What trains the runs: ``--jobs`` local processes, or Slurm jobs (``--launcher slurm``)."""
+    from mapless.experiments.launch import LocalLauncher, SlurmLauncher, import_submitit
+
+    if args.launcher == "local":
+        given = [f"--{k.replace('_', '-')}" for k in ("partition", "time", "no_wait") if getattr(args, k)]
+        if given or args.gpus_per_job:
+            raise MaplessError(f"{', '.join(given) or '--gpus-per-job'} applies to --launcher slurm")
+        return LocalLauncher(args.jobs)
+    if args.jobs is not None:
+        raise MaplessError("--jobs sets the local launcher's processes; Slurm runs every job it is given")
+    if args.gpus_per_job < 0:
+        raise MaplessError(f"--gpus-per-job must be >= 0, got {args.gpus_per_job}")
+    import_submitit()  # before any work: a missing extra is an error, not a late surprise
+    return SlurmLauncher(args.partition, args.time, args.cpus_per_job, args.gpus_per_job, not args.no_wait)

@@ -328,14 +328,17 @@ def _worker(
     return [r.to_dict() for r in results], _rss_mb(), time.perf_counter() - start
 
 
-def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
+def exit_with_parent(parent: int, poll_seconds: float = 1.0, signum: int | None = None) -> None:
     """Worker initializer: exit when process ``parent`` is gone. A pool's workers otherwise outlive
-    a parent killed without a clean shutdown (SIGTERM, SIGKILL), each holding a scene library."""
+    a parent killed without a clean shutdown (SIGTERM, SIGKILL), each holding a scene library.
+    ``signum``: send this process that signal instead (a trainer's SIGTERM: checkpoint, then end)."""
 
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(poll_seconds)
-        os._exit(1)
+        if signum is None:
+            os._exit(1)
+        os.kill(os.getpid(), signum)
 
     threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
 

@@ -1,9 +1,10 @@
 """The paper's experiments as pipelines behind ``mapless reproduce EXPERIMENT --budget B``.
 
-Each experiment's pipeline (pipelines.py) trains its runs (skipped when a finished run of the
-same configuration exists), selects checkpoints (``standard`` protocol: on val, reported once on
-test) and evaluates, returning records (records.py); render.py writes them as
-``reports/EXPERIMENT/`` (``EXPERIMENT.md``, ``EXPERIMENT.json``, PNGs):
+Each experiment's runs are trained first (launch.py: in turn, side by side in local processes, or
+as Slurm jobs; skipped when a finished run of the same configuration exists), then its pipeline
+(pipelines.py) selects checkpoints (``standard`` protocol: on val, reported once on test) and
+evaluates, returning records (records.py); render.py writes them as ``reports/EXPERIMENT/``
+(``EXPERIMENT.md``, ``EXPERIMENT.json``, PNGs):
 
 * ``table1``: every model on the test split, ALL and L>=5 (random needs no training).
 * ``table2``: cross-room-type generalisation: one run per model and training room type
@@ -35,8 +36,9 @@ from mapless.experiments.config import (
     train_config,
 )
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
-from mapless.experiments.pipelines import PIPELINES, reproduce
-from mapless.experiments.runs import RunTally, planned_runs, run_dir_for, train_run
+from mapless.experiments.launch import LocalLauncher, PlannedRun, SlurmLauncher
+from mapless.experiments.pipelines import PIPELINES, experiment_runs, planned_runs, reproduce
+from mapless.experiments.runs import RunTally, run_dir_for, train_run
 
 __all__ = [
     "BUDGETS",
@@ -45,9 +47,13 @@ __all__ = [
     "Evaluator",
     "ExperimentConfig",
     "ExperimentEval",
+    "LocalLauncher",
+    "PlannedRun",
     "RunTally",
+    "SlurmLauncher",
     "budget_path",
     "config_path",
+    "experiment_runs",
     "experiment_scenes",
     "load_experiment",
     "planned_runs",

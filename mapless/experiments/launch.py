@@ -15,7 +15,6 @@ import multiprocessing as mp
 import os
 import queue
 import signal
-import threading
 import time
 import traceback
 from collections import Counter
@@ -28,6 +27,7 @@ from tqdm import tqdm
 
 from mapless import checkpoint as ckpt
 from mapless.errors import MaplessError
+from mapless.evaluate.runner import exit_with_parent
 from mapless.experiments.config import ExperimentConfig, train_config
 from mapless.experiments.runs import RunTally, run_dir_for, train_run
 from mapless.files import write_text
@@ -106,8 +106,11 @@ class LocalLauncher:
         jobs = min(self.jobs or default_jobs(runs), len(todo))
         if jobs <= 1:
             train_in_turn(runs, log)
-        else:
-            train_side_by_side(todo, jobs, log)
+            return True
+        for run in runs:
+            if run.finished:
+                train_run(run.config, run.run_dir, log)  # says it is reused
+        train_side_by_side(todo, jobs, log)
         return True
 
 
@@ -200,7 +203,9 @@ def _train_child(config: Any, run_dir: Path, index: int, messages: Any) -> None:
     # A session of its own: the terminal's Ctrl-C goes to the parent only, which passes one on (two
     # would abort the run rather than checkpoint it).
     os.setsid()
-    _stop_with(os.getppid())
+    # Killed however, the parent leaves a run that checkpoints and ends, rather than an orphan that
+    # holds its folder's lock and trains on what the next command would resume.
+    exit_with_parent(os.getppid(), signum=signal.SIGTERM)
     try:
         train_run(config, run_dir, lambda line: messages.put(("log", index, line)))
         messages.put(("done", index, ""))
@@ -208,18 +213,6 @@ def _train_child(config: Any, run_dir: Path, index: int, messages: Any) -> None:
         messages.put(("stopped", index, ""))
     except BaseException as error:  # reported by the parent, which goes on with the other runs
         messages.put(("failed", index, "".join(traceback.format_exception(error)).rstrip()))
-
-
-def _stop_with(parent: int) -> None:
-    """Stop as on SIGTERM (checkpoint, then end) once ``parent`` is gone, killed however: an
-    orphaned run would hold its folder's lock and keep training what the next command resumes."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
 
 
 class GridDisplay:
@@ -231,7 +224,7 @@ class GridDisplay:
         self.log = log
         self.grid = tqdm(total=total, desc="runs ended", unit="run", position=0, dynamic_ncols=True,
                          disable=None)  # fmt: skip
-        self.bars: dict[Path, tuple[PlannedRun, tqdm]] = {}
+        self.bars: dict[Path, tuple[PlannedRun, tqdm, str]] = {}  # run folder -> run, bar, counter
 
     def write(self, line: str) -> None:
         with tqdm.external_write_mode():
@@ -247,25 +240,25 @@ class GridDisplay:
             dynamic_ncols=True,
             disable=None,
         )
-        self.bars[run.run_dir] = (run, bar)
+        self.bars[run.run_dir] = (run, bar, "frames" if by_frames else "episodes")
 
     def refresh(self) -> None:
-        for run, bar in self.bars.values():
+        for run, bar, counter in self.bars.values():
             progress = read_progress(run.run_dir)
             if progress:
-                bar.n = progress["frames" if bar.unit == "frame" else "episodes"]
+                bar.n = progress[counter]
                 bar.set_postfix(success=f"{progress['success']:.3f}", refresh=False)
                 bar.refresh()
 
     def finish(self, run: PlannedRun, outcome: str) -> None:
         self.refresh()
-        _, bar = self.bars[run.run_dir]
+        _, bar, _ = self.bars[run.run_dir]
         bar.set_postfix_str(outcome)
         self.grid.update(1)
         self.write(f"  {run.label}: {outcome}")
 
     def close(self) -> None:
-        for _, bar in self.bars.values():
+        for _, bar, _ in self.bars.values():
             bar.close()
         self.grid.close()
 
@@ -332,8 +325,10 @@ class SlurmLauncher:
         submitit = import_submitit()
         runs = distinct(runs)
         todo = [run for run in runs if not run.finished]
+        for run in runs:
+            if run.finished:
+                train_run(run.config, run.run_dir, log)  # says it is reused
         if not todo:
-            train_in_turn(runs, log)  # logs that each run is reused
             return True
         folder = todo[0].run_dir.parent / SLURM_DIR
         index_file = folder / JOBS_FILE
@@ -415,5 +410,8 @@ def _job_minutes(runs: Sequence[PlannedRun]) -> int:
 
 
 def _train_job(config: Any, run_dir: str) -> float:
-    """What a job runs (submitit pickles it by name): train or resume one run."""
+    """What a job runs (submitit pickles it by name): train or resume one run. submitit warns a job
+    before its time limit with SIGUSR2 (90 s on Slurm), which here takes the trainer's graceful
+    path of SIGTERM: the run checkpoints and ends, and the next ``reproduce`` resubmits it."""
+    signal.signal(signal.SIGUSR2, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
     return train_run(config, Path(run_dir), print)

@@ -1,16 +1,21 @@
-"""The experiments' pipelines: train (or reuse) the runs, evaluate them, and return what they found
-as records (records.py); :func:`reproduce` has render.py write the report."""
+"""The experiments' pipelines. Each experiment's rows (a model trained one way: a line of its
+report) name its runs; :func:`reproduce` has a launcher (launch.py) train them all (or reuse them),
+then the pipeline evaluates them in its rows' order and returns what it found as records
+(records.py), which render.py writes as the report."""
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
+from mapless.experiments.launch import Launcher, LocalLauncher, PlannedRun, distinct
 from mapless.experiments.records import (
     Ablation,
     Figure3,
@@ -25,27 +30,38 @@ from mapless.experiments.records import (
     TrajectoryFigure,
 )
 from mapless.experiments.render import write_report
-from mapless.experiments.runs import RunTally, planned_runs, run_dir_for, train_run
 from mapless.scenes.catalogue import ROOM_TYPES
 
 
-def _model_results(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, variant: str = "all",
-                   extra: dict | None = None, log: Callable[[str], None] = print,
-                   seeds: int | None = None) -> tuple[PerSeed, list[dict]]:  # fmt: skip
-    """Per-seed report results of one model (trained per seed, or untrained for ``random``)."""
-    per_seed, meta = [], []
-    if model == "random":
-        results, info = ev.untrained(model)
+@dataclass(frozen=True)
+class Row:
+    """A model trained one way (``variant``: the folder name of the ``extra`` training overrides):
+    a line of a report, with one run per seed (``seeds``; None: the experiment's), none for random."""
+
+    model: str
+    variant: str = "all"
+    extra: dict | None = None
+    seeds: int | None = None
+
+    def runs(self, config: ExperimentConfig) -> list[PlannedRun]:
+        if self.model == "random":
+            return []
+        return [
+            PlannedRun.of(config, self.model, self.variant, 1 + s, self.extra)
+            for s in range(self.seeds or config.seeds)
+        ]
+
+
+def _model_results(config: ExperimentConfig, ev: Evaluator, row: Row) -> tuple[PerSeed, list[dict]]:
+    """Per-seed report results of one row (its trained runs, or ``random`` untrained)."""
+    if row.model == "random":
+        results, info = ev.untrained(row.model)
         return [results], [info]
-    for s in range(seeds or config.seeds):
-        cfg = train_config(config, model, seed=1 + s, extra=extra)
-        run_dir = run_dir_for(config, cfg, variant)
-        tally.start(model, f"{variant}, seed {1 + s}")
-        trained_share = train_run(cfg, run_dir, log)
-        results, info = ev.trained(run_dir, cfg)
-        tally.finish(trained_share)
+    per_seed, meta = [], []
+    for run in row.runs(config):
+        results, info = ev.trained(run.run_dir, run.config)
         per_seed.append(results)
-        meta.append({"run_dir": str(run_dir), **info})
+        meta.append({"run_dir": str(run.run_dir), **info})
     return per_seed, meta
 
 
@@ -53,13 +69,18 @@ def _setting(config: ExperimentConfig, ev: Evaluator) -> Setting:
     return Setting(config, ev.protocol_label, len(ev.report_episodes))
 
 
+def table1_rows(config: ExperimentConfig) -> dict[str, Row]:
+    """Every model of the config, by name."""
+    return {model: Row(model) for model in config.models}
+
+
 def table1(config: ExperimentConfig, log: Callable[[str], None]) -> Table1:
     """Every model of the config on the report episodes, and the focus model minus each other."""
-    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    ev = Evaluator(config, log)
     records, results = [], {}
-    for model in config.models:
+    for model, row in table1_rows(config).items():
         log(f"{model}:")
-        per_seed, meta = _model_results(config, ev, tally, model, log=log)
+        per_seed, meta = _model_results(config, ev, row)
         records.append(model_record(model, per_seed, {"runs": meta, "protocol": config.eval.protocol}))
         results[model] = per_seed
     if config.focus in results:
@@ -69,51 +90,57 @@ def table1(config: ExperimentConfig, log: Callable[[str], None]) -> Table1:
     return Table1(_setting(config, ev), records, results)
 
 
+def table2_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:
+    """Each model trained on the scenes of one room type, by (model, room type)."""
+    return {
+        (model, room): Row(
+            model,
+            f"{ROOM_ABBREV[room]}-single",
+            {"env": {"scenes": config.single_room_scenes.get(room, f"train:{room}")}},
+        )
+        for model in config.models
+        for room in config.rooms
+    }
+
+
 def table2(config: ExperimentConfig, log: Callable[[str], None]) -> Table2:
     """One run per model and training room type, each tested on every room type."""
-    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    ev = Evaluator(config, log)
     rows = []
-    for model in config.models:
-        for room in config.rooms:
-            log(f"{model}, {ROOM_ABBREV[room]}-single:")
-            extra = {"env": {"scenes": config.single_room_scenes.get(room, f"train:{room}")}}
-            per_seed, meta = _model_results(
-                config, ev, tally, model, f"{ROOM_ABBREV[room]}-single", extra, log
-            )
-            rec = model_record(
-                f"{model} {ROOM_ABBREV[room]}-single",
-                per_seed,
-                {"runs": meta, "train_room": room},
-                keep_episodes=False,
-            )
-            rows.append(Table2Row(model, room, rec))
+    for (model, room), row in table2_rows(config).items():
+        log(f"{model}, {ROOM_ABBREV[room]}-single:")
+        per_seed, meta = _model_results(config, ev, row)
+        rec = model_record(
+            f"{model} {ROOM_ABBREV[room]}-single",
+            per_seed,
+            {"runs": meta, "train_room": room},
+            keep_episodes=False,
+        )
+        rows.append(Table2Row(model, room, rec))
     return Table2(_setting(config, ev), rows)
+
+
+def table3_rows(config: ExperimentConfig) -> dict[str | None, Row]:
+    """The focus model (key None), then without the relationships of one room type (key: the room)."""
+    # The unablated model is Table 1's run (variant "all", same configuration): trained once.
+    rows: dict[str | None, Row] = {None: Row(config.focus)}
+    for room in config.rooms:
+        kept = [r for r in ROOM_TYPES if r != room]
+        extra = {"model": {"hierarchy_rooms": kept}, "env": {"parent_reward_rooms": kept}}
+        rows[room] = Row(config.focus, f"no-{room}", extra)
+    return rows
 
 
 def table3(config: ExperimentConfig, log: Callable[[str], None]) -> Table3:
     """The focus model with every room's relationships, then without those of one room type."""
-    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
-    variants = [("full", None)] + [(room, tuple(r for r in ROOM_TYPES if r != room)) for room in config.rooms]
+    ev = Evaluator(config, log)
     records, full = [], None
-    for name, rooms in variants:
-        label = config.focus if rooms is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
+    for name, row in table3_rows(config).items():
+        label = config.focus if name is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
         log(f"{label}:")
-        extra = (
-            None
-            if rooms is None
-            else {"model": {"hierarchy_rooms": list(rooms)}, "env": {"parent_reward_rooms": list(rooms)}}
-        )
-        # The unablated model is Table 1's run (variant "all", same configuration): trained once.
-        per_seed, meta = _model_results(
-            config, ev, tally, config.focus, "all" if rooms is None else f"no-{name}", extra, log
-        )
-        rec = model_record(
-            label,
-            per_seed,
-            {"runs": meta, "removed_room": None if rooms is None else name},
-            keep_episodes=False,
-        )
-        if rooms is None:
+        per_seed, meta = _model_results(config, ev, row)
+        rec = model_record(label, per_seed, {"runs": meta, "removed_room": name}, keep_episodes=False)
+        if name is None:
             full = per_seed
         else:
             rec["minus_full"] = {
@@ -124,22 +151,29 @@ def table3(config: ExperimentConfig, log: Callable[[str], None]) -> Table3:
     return Table3(_setting(config, ev), records)
 
 
+def ablation_rows(config: ExperimentConfig) -> dict[str | None, Row]:
+    """The focus model (key None), then each ablation row that trains runs of its own, by name."""
+    # The unablated model is Table 1's run (variant "all", same configuration): trained once.
+    rows: dict[str | None, Row] = {None: Row(config.focus)}
+    for name, row in config.ablation_table().items():
+        if row.train:
+            rows[name] = Row(config.focus, f"ablation-{name}", row.train, row.seeds)
+    return rows
+
+
 def ablation(config: ExperimentConfig, log: Callable[[str], None]) -> Ablation:
     """The focus model, then each row of ``config.ablations``: trained with the row's overrides
     (its own runs), or the focus model's chosen snapshots evaluated without test-time adaptation;
     every row minus the focus model, paired over the same episodes and seeds."""
-    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    ev, trained = Evaluator(config, log), ablation_rows(config)
     focus = config.focus
     log(f"{focus}:")
-    # The unablated model is Table 1's run (variant "all", same configuration): trained once.
-    full, full_meta = _model_results(config, ev, tally, focus, log=log)
+    full, full_meta = _model_results(config, ev, trained[None])
     records = [model_record(focus, full, {"runs": full_meta, "row": "focus"})]
     for name, row in config.ablation_table().items():
         log(f"{focus}, {name} ({row.what}):")
         if row.train:
-            per_seed, meta = _model_results(
-                config, ev, tally, focus, f"ablation-{name}", row.train, log, row.seeds
-            )
+            per_seed, meta = _model_results(config, ev, trained[name])
             baseline = full[: len(per_seed)]
         else:
             per_seed, meta, baseline = [], [], full
@@ -205,28 +239,32 @@ SHIFT_ROWS = ("default", "variants")
 SHIFT_SETS = ("default", "shifted")
 
 
-def _shift_row(config: ExperimentConfig, ev: Evaluator, tally: RunTally, model: str, row: str,
-               log: Callable[[str], None]) -> tuple[dict[str, PerSeed], list[dict]]:  # fmt: skip
-    """One model trained one way (``row``): per-seed results on the default and the shifted test set."""
-    if model == "random":
-        results, info = ev.untrained(model)
-        return {"default": [results], "shifted": [ev.on(ev.shift_episodes, model)]}, [info]
-    extra = None if row == "default" else {"env": {"layouts": config.variant_layouts}}
+def layout_shift_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:
+    """Each model trained on the default arrangements and (but random) on scene variants, by
+    (model, row of :data:`SHIFT_ROWS`)."""
+    rows = {}
+    for model in config.models:
+        # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
+        rows[model, "default"] = Row(model)
+        if model != "random":
+            rows[model, "variants"] = Row(model, "layouts", {"env": {"layouts": config.variant_layouts}})
+    return rows
+
+
+def _shift_row(config: ExperimentConfig, ev: Evaluator, row: Row) -> tuple[dict[str, PerSeed], list[dict]]:
+    """One model trained one way: per-seed results on the default and the shifted test set."""
+    if row.model == "random":
+        results, info = ev.untrained(row.model)
+        return {"default": [results], "shifted": [ev.on(ev.shift_episodes, row.model)]}, [info]
     out: dict[str, PerSeed] = {"default": [], "shifted": []}
     meta = []
-    for s in range(config.seeds):
-        cfg = train_config(config, model, seed=1 + s, extra=extra)
-        # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
-        run_dir = run_dir_for(config, cfg, "all" if row == "default" else "layouts")
-        tally.start(model, f"{row} arrangements, seed {1 + s}")
-        trained_share = train_run(cfg, run_dir, log)
-        results, info = ev.trained(run_dir, cfg)
-        chosen = ev.chosen_model(run_dir, info)
+    for run in row.runs(config):
+        results, info = ev.trained(run.run_dir, run.config)
+        chosen = ev.chosen_model(run.run_dir, info)
         out["default"].append(results)
-        cache = run_dir / "eval" / f"shifted_{Path(chosen).stem}.json"
-        out["shifted"].append(ev.on(ev.shift_episodes, model, cfg, chosen, cache))
-        tally.finish(trained_share)
-        meta.append({"run_dir": str(run_dir), "model_file": chosen, **info})
+        cache = run.run_dir / "eval" / f"shifted_{Path(chosen).stem}.json"
+        out["shifted"].append(ev.on(ev.shift_episodes, row.model, run.config, chosen, cache))
+        meta.append({"run_dir": str(run.run_dir), "model_file": chosen, **info})
     return out, meta
 
 
@@ -237,19 +275,17 @@ def layout_shift(config: ExperimentConfig, log: Callable[[str], None]) -> Layout
     their default arrangements and under other ones (``eval.shift_layouts``, or ``eval.shift_file``).
     Paired intervals: each model's variants row minus its default row, and the focus model minus each
     other model on both sets (does the focus model's advantage grow or vanish when objects move?)."""
-    ev, tally = Evaluator(config, log), RunTally(planned_runs(config), log)
+    ev = Evaluator(config, log)
     results: dict[tuple[str, str], dict[str, PerSeed]] = {}
     records = []
-    for model in config.models:
-        for row in SHIFT_ROWS if model != "random" else SHIFT_ROWS[:1]:
-            log(f"{model}, trained on {row} arrangements:")
-            per_set, meta = _shift_row(config, ev, tally, model, row, log)
-            results[model, row] = per_set
-            for name in SHIFT_SETS:
-                label = f"{model} | {row} | {name}"
-                records.append(
-                    model_record(label, per_set[name], {"runs": meta, "trained_on": row, "test_on": name})
-                )
+    for (model, trained_on), row in layout_shift_rows(config).items():
+        log(f"{model}, trained on {trained_on} arrangements:")
+        per_set, meta = _shift_row(config, ev, row)
+        results[model, trained_on] = per_set
+        for name in SHIFT_SETS:
+            label = f"{model} | {trained_on} | {name}"
+            meta_set = {"runs": meta, "trained_on": trained_on, "test_on": name}
+            records.append(model_record(label, per_set[name], meta_set))
     variants = [
         _comparison(model, results[model, "default"][name], results[model, "variants"][name], name)
         for model in config.models
@@ -271,6 +307,29 @@ def _comparison(label: str, a: PerSeed, b: PerSeed, test_on: str) -> dict:
     return {"comparison": label, "test_on": test_on, **difference_record(a, b)}
 
 
+#: Each experiment's rows (figures are drawn from Table 1's).
+ROWS: dict[str, Callable[[ExperimentConfig], dict]] = {
+    "table1": table1_rows,
+    "table2": table2_rows,
+    "table3": table3_rows,
+    "figure3": table1_rows,
+    "figures45": table1_rows,
+    "layout_shift": layout_shift_rows,
+    "ablation": ablation_rows,
+}
+
+
+def experiment_runs(config: ExperimentConfig) -> list[PlannedRun]:
+    """Every training run of an experiment, in the order its pipeline evaluates them."""
+    return distinct([run for row in ROWS[config.experiment](config).values() for run in row.runs(config)])
+
+
+def planned_runs(config: ExperimentConfig) -> dict[str, int]:
+    """How many training runs an experiment goes through, per model (finished ones are reused, not
+    retrained)."""
+    return dict(Counter(run.model for run in experiment_runs(config)))
+
+
 PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]] = {
     "table1": table1,
     "table2": table2,
@@ -283,13 +342,18 @@ PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]
 
 
 def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log: Callable[[str], None] = print,
-              command: str = "") -> dict:  # fmt: skip
-    """Run one experiment end to end; returns its report's payload and markdown. Reports go to
+              command: str = "", launcher: Launcher | None = None) -> dict | None:  # fmt: skip
+    """Run one experiment end to end: ``launcher`` trains its runs (default: side by side on this
+    machine's cores, :class:`~mapless.experiments.launch.LocalLauncher`), then they are evaluated
+    here in turn. Returns the report's payload and markdown, or None when the runs were left to
+    train as jobs not waited for (the same call collects them later). Reports go to
     ``<reports_dir>/<experiment>``, or ``<experiment>-<protocol>`` under a protocol other than the
     standard one, so that a table under two protocols stands side by side."""
     suffix = "" if config.eval.protocol == "standard" else f"-{config.eval.protocol}"
     out = Path(reports_dir) / f"{config.experiment}{suffix}"
     start = time.perf_counter()
+    if not (launcher or LocalLauncher()).train(experiment_runs(config), log):
+        return None
     record = PIPELINES[config.experiment](config, log)
     command = command or f"mapless reproduce {config.experiment} --budget {config.budget}"
     result = write_report(config.experiment, record, out, command)

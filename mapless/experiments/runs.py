@@ -54,29 +54,17 @@ _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
 )
 
 
-def planned_runs(config: ExperimentConfig) -> dict[str, int]:
-    """How many training runs an experiment goes through, per model (finished ones are reused, not
-    retrained)."""
-    if config.experiment == "table3":  # the focus model, then without one room type at a time
-        return {config.focus: (1 + len(config.rooms)) * config.seeds}
-    if config.experiment == "ablation":  # the focus model, then each row that trains
-        rows = [r.seeds or config.seeds for r in config.ablation_table().values() if r.train]
-        return {config.focus: config.seeds + sum(rows)}
-    per_model = {"table2": len(config.rooms), "layout_shift": 2}.get(config.experiment, 1)
-    return {model: per_model * config.seeds for model in config.models if model != "random"}
-
-
 @dataclass
 class RunTally:
     """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
-    the time left. Per model: the mean wall time of a whole run (training and evaluation) over the
-    runs of that model this process trained, a resumed run's time scaled up by the share of its
+    the time left. Per model: the mean wall time of a run's training over the runs of that model
+    this process trained, a resumed run's time scaled up by the share of its
     episodes trained here, times that model's runs left. Models differ by far (an a3c run of the
     small budget takes minutes, a cvmeta one twenty), so a model with runs left but none timed yet is
     named, and the estimate covers the others only. Reused runs take seconds, so while some are left
     the estimate is an upper bound."""
 
-    planned: dict[str, int]  # model -> runs (:func:`planned_runs`)
+    planned: dict[str, int]  # model -> runs (pipelines.planned_runs)
     log: Callable[[str], None]
     finished: Counter[str] = field(default_factory=Counter)
     run_seconds: dict[str, list[float]] = field(default_factory=dict)  # per whole run, as estimated

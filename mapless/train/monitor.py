@@ -37,10 +37,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from mapless.checkpoint import METRICS_FILE
+from mapless.checkpoint import METRICS_FILE, PROGRESS_FILE
 from mapless.files import write_text
 
 RUNNING_WINDOW = 1000
+#: Seconds between two writes of the run folder's progress file.
+PROGRESS_EVERY = 2.0
 
 
 class RunMonitor:
@@ -94,6 +96,7 @@ class RunMonitor:
         self._running = deque(maxlen=RUNNING_WINDOW)
         self._mark = (time.perf_counter(), episodes, frames)
         self._start = self._mark
+        self._progress_written = -PROGRESS_EVERY
         self.writer = None
         self.bar = None
         if run_dir is None:
@@ -175,10 +178,19 @@ class RunMonitor:
             self.bar.set_postfix(
                 ep=episodes, fps=f"{fps:.0f}", success=f"{self.running_success:.3f}", refresh=False
             )
+        if self.run_dir is not None and time.perf_counter() - self._progress_written >= PROGRESS_EVERY:
+            self._write_progress()
         if episodes < self._next_log:
             return None
         self._next_log = (episodes // self.log_every + 1) * self.log_every
         return self._write()
+
+    def _write_progress(self) -> None:
+        """The counters so far, for a process that watches this run from outside (a grid of runs
+        trained side by side, or Slurm jobs): its progress line, however often the logs write."""
+        self._progress_written = time.perf_counter()
+        state = {"episodes": self.episodes, "frames": self.frames, "success": self.running_success}
+        write_text(Path(self.run_dir) / PROGRESS_FILE, json.dumps({**state, "time": time.time()}))
 
     def _write(self) -> dict[str, float]:
         now = time.perf_counter()

@@ -1,0 +1,158 @@
+"""`mapless reproduce` trains an experiment's runs side by side (``--jobs``) or as Slurm jobs
+(``--launcher slurm``, run here by submitit's local executor: real processes, no cluster), and a
+grid that was killed goes on where it stopped. On the real scenes and episode files of
+test_eval_reproduce's workspace."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from test_eval_reproduce import workspace  # noqa: F401 - the fixture: three built scenes, episode files
+
+from mapless import checkpoint as ckpt
+from mapless.cli import main
+from mapless.experiments import SlurmLauncher, experiment_runs, load_experiment, reproduce
+from mapless.experiments.launch import default_jobs, in_use
+from mapless.provenance import cpu_cores
+
+pytestmark = pytest.mark.usefixtures("single_torch_thread")
+
+#: Two runs: a3c with two seeds (random, untrained, is left out to keep it short).
+TWO_RUNS = ["--set", "models=[a3c]", "--set", "focus=a3c", "--seeds", "2"]
+
+
+def _command(workspace, name: str, *more: str) -> list[str]:  # noqa: F811 - the fixture's value
+    root, config = workspace
+    return ["reproduce", "table1", "--config", str(config), *TWO_RUNS, "--set", f"runs_dir={root / name}",
+            "--reports", str(root / f"{name}_reports"), *more]  # fmt: skip
+
+
+def _report(workspace, name: str) -> dict:  # noqa: F811
+    return json.loads((workspace[0] / f"{name}_reports" / "table1" / "table1.json").read_text())
+
+
+def _wait_until(condition, seconds: float, what: str) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, f"no {what} within {seconds} s"
+        time.sleep(0.2)
+
+
+def test_runs_train_side_by_side_with_the_results_of_one_after_another(workspace, capsys):  # noqa: F811
+    assert main(_command(workspace, "side_by_side", "--jobs", "2")) == 0
+    out = capsys.readouterr().out
+    threads = max(1, cpu_cores() // 2)
+    assert f"training 2 runs, 2 at a time, {threads} torch thread(s) each" in out
+    assert "a3c all, seed 1: done" in out and "a3c all, seed 2: done" in out
+    side_by_side = _report(workspace, "side_by_side")
+    for run in side_by_side["models"][0]["runs"]:
+        # Each process trained with its share of the cores, and its config says so.
+        config = yaml.safe_load((Path(run["run_dir"]) / ckpt.CONFIG_FILE).read_text())
+        assert (
+            config["threads"] == threads
+            and f"{threads} thread(s)" in (Path(run["run_dir"]) / "config.yaml").read_text()
+        )
+
+    assert main(_command(workspace, "in_turn", "--jobs", "1")) == 0
+    out = capsys.readouterr().out
+    assert "[run 1 of 2] a3c all, seed 1" in out and "[run 2 of 2] a3c all, seed 2" in out
+    in_turn = _report(workspace, "in_turn")
+    # The same runs (same folder names: the thread count is not part of what a run is) and the same
+    # trained models: every episode of the report alike.
+    names = [
+        [Path(r["run_dir"]).name for r in report["models"][0]["runs"]] for report in (side_by_side, in_turn)
+    ]
+    assert names[0] == names[1]
+    assert side_by_side["models"][0]["episodes"] == in_turn["models"][0]["episodes"]
+
+
+def test_a_killed_grid_resumes_where_it_stopped(workspace, capsys):  # noqa: F811
+    root, _ = workspace
+    longer = ["--set", "train.episodes=96"]
+    command = _command(workspace, "killed", "--jobs", "2", *longer)
+    grid = subprocess.Popen([sys.executable, "-m", "mapless", *command], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)  # fmt: skip
+    config = load_experiment("table1", "smoke", Path(command[3]), ["models=[a3c]", "focus=a3c",
+                             f"runs_dir={root / 'killed'}", "train.episodes=96"], seeds=2)  # fmt: skip
+    runs = experiment_runs(config)
+    try:
+        _wait_until(
+            lambda: all((r.run_dir / ckpt.CHECKPOINT_FILE).is_file() for r in runs), 180, "checkpoints"
+        )
+    finally:
+        grid.kill()  # SIGKILL: the parent gets no chance to stop its runs
+        grid.wait()
+    # Each run saw its parent go, checkpointed and ended: no orphan holds a folder.
+    _wait_until(lambda: not any(in_use(r.run_dir) for r in runs), 60, "run left its folder")
+    assert not all(r.finished for r in runs), "the runs ended before the kill; nothing to resume"
+    assert main(command) == 0
+    out = capsys.readouterr().out
+    assert all(run.finished for run in runs)
+    assert "resuming" in out and (root / "killed_reports" / "table1" / "table1.md").is_file()
+
+
+def test_slurm_jobs_run_by_submitits_local_executor_are_collected_by_a_later_call(workspace, capsys):  # noqa: F811
+    import submitit  # the dev extra installs it
+
+    root, path = workspace
+    overrides = ["models=[a3c]", "focus=a3c", f"runs_dir={root / 'slurm_runs'}"]
+    reports = root / "slurm_reports"
+    one_seed = load_experiment("table1", "smoke", path, overrides)
+    local = SlurmLauncher(cpus=1, cluster="local", poll_seconds=0.5)
+
+    # Submit and return: nothing to report yet.
+    no_wait = SlurmLauncher(cpus=1, cluster="local", wait=False)
+    assert reproduce(one_seed, reports, launcher=no_wait) is None
+    (run,) = experiment_runs(one_seed)
+    folder = root / "slurm_runs" / "slurm"
+    index = json.loads((folder / "jobs.json").read_text())
+    assert list(index) == [run.run_dir.name]
+    assert "submitted job" in capsys.readouterr().out
+    # The job is a process of its own, as a Slurm job would be: it trains the run by itself.
+    _wait_until(lambda: run.finished and not in_use(run.run_dir), 180, "finished job")
+    job = submitit.LocalJob(folder, index[run.run_dir.name])
+    assert job.result() == 1.0  # the share of the run it trained
+    assert f"-> {run.run_dir}" in Path(job.paths.stdout).read_text()
+
+    # A later call collects the finished run; the second seed is submitted and waited for.
+    two_seeds = load_experiment("table1", "smoke", path, overrides, seeds=2)
+    result = reproduce(two_seeds, reports, launcher=local)
+    assert result is not None and (reports / "table1" / "table1.md").is_file()
+    out = capsys.readouterr().out
+    assert f"reusing finished run {run.run_dir}" in out
+    assert out.count("submitted job") == 1 and "a3c all, seed 2: finished" in out
+    record = result["payload"]["models"][0]
+    assert [Path(r["run_dir"]).name.split("__")[2] for r in record["runs"]] == ["s1", "s2"]
+    assert len(json.loads((folder / "jobs.json").read_text())) == 2
+
+
+def test_slurm_without_submitit_or_local_with_slurm_options_is_a_clear_error(workspace, monkeypatch, capsys):  # noqa: F811
+    monkeypatch.setitem(sys.modules, "submitit", None)  # as if not installed
+    assert main(_command(workspace, "no_submitit", "--launcher", "slurm")) == 2
+    assert 'pip install -c constraints.txt -e ".[cluster]"' in capsys.readouterr().err
+    assert main(_command(workspace, "no_submitit", "--partition", "gpu")) == 2
+    assert "--partition applies to --launcher slurm" in capsys.readouterr().err
+    assert not (workspace[0] / "no_submitit").exists(), "work started before the error"
+
+
+def test_the_default_keeps_every_core_busy_with_one_run_per_core(workspace, tmp_path):  # noqa: F811
+    _, path = workspace
+    overrides = ["models=[a3c,cvmeta]", f"runs_dir={tmp_path}"]
+    runs = experiment_runs(load_experiment("table1", "smoke", path, overrides, seeds=2))  # four runs
+    assert default_jobs(runs, cores=2) == 2  # the README's main job on 2 cores: two at a time
+    assert default_jobs(runs, cores=16) == 4  # no more processes than runs
+    assert default_jobs(runs, cores=1) == 1
+    threaded = experiment_runs(
+        load_experiment("table1", "smoke", path, [*overrides, "train.threads=2"], seeds=2)
+    )
+    assert default_jobs(threaded, cores=4) == 2  # runs that name their threads get that many cores
+    first = runs[0].run_dir
+    first.mkdir(parents=True)
+    (first / ckpt.FINAL_MODEL_FILE).touch()  # a finished run needs no process
+    assert default_jobs(runs, cores=16) == 3
