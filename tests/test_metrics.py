@@ -6,21 +6,34 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mapless.cli import main
 from mapless.evaluate.metrics import (
+    METRICS,
     EpisodeResult,
+    Metric,
     aggregate,
+    compared_metrics,
     exploration_curve,
     exploration_ratio,
     in_l5,
+    main_metrics,
+    register,
     spl,
     summarize,
 )
-from mapless.evaluate.report import format_difference, format_estimate, model_record, model_table
+from mapless.evaluate.report import (
+    comparison_table,
+    details_table,
+    format_difference,
+    format_estimate,
+    model_record,
+    model_table,
+)
 from mapless.evaluate.stats import bootstrap_ci, difference_estimates, mean_std, seed_estimates
 
 
@@ -236,3 +249,43 @@ def test_compare_refuses_what_it_cannot_pair(tmp_path, capsys, content, b, messa
     b_spec = str(other) if b == "{a}" else f"{other}:cvmeta"
     assert main(["compare", str(a), b_spec]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_metric_declared_once_reaches_every_report(monkeypatch):
+    """One declaration (a Done rate over the L>=5 bucket, a secondary column, compared) is all that
+    aggregates, seed estimates, the secondary table, differences and ``mapless compare`` read."""
+    metric = Metric("l5_done_rate", "Done L≥5", "done", l5_only=True, table="details", compared=True)
+    monkeypatch.setitem(METRICS, metric.name, metric)
+    a = [ep(0, True, 8, 4), ep(1, False, 30, 5, done=False), ep(2, True, 10, 6), ep(3, False, 9, 7)]
+    b = [dataclasses.replace(r, called_done=True) for r in a]
+    assert aggregate(a)["l5_done_rate"] == pytest.approx(2 / 3)  # episodes 1-3 are L>=5; 2 and 3 Done
+    assert seed_estimates([a])["l5_done_rate"].episodes == 3
+    assert difference_estimates([a], [b], ["l5_done_rate"])["l5_done_rate"].mean == pytest.approx(1 / 3)
+    record = model_record("x", [a])
+    assert record["estimates"]["l5_done_rate"]["mean"] == pytest.approx(2 / 3)
+    header, _, row = details_table([record]).splitlines()
+    assert header.endswith("| Done L≥5 |") and row.endswith("| 66.7 |")
+    assert "| Done L≥5 | 66.7 [" in comparison_table("a", [a], "b", [b])
+    # Where it is not declared compared, the comparison leaves it out.
+    monkeypatch.setitem(METRICS, metric.name, dataclasses.replace(metric, compared=False))
+    assert "Done L≥5" not in comparison_table("a", [a], "b", [b])
+
+
+def test_metric_declarations_are_checked():
+    with pytest.raises(ValueError, match="declared twice"):
+        register(Metric("success", "SR", "success"))
+    # A ratio of sums (failed actions / all actions) is not a mean over episodes: no bootstrap.
+    with pytest.raises(ValueError, match="ratio of sums"):
+        Metric("x", "x", "failed_actions", per="ep_length")
+    with pytest.raises(ValueError, match="no bootstrap interval"):
+        difference_estimates([[ep(0, True, 4, 4)]], [[ep(0, True, 4, 4)]], ["failed_action_rate"])
+    # The tables' column groups and what compare shows are the declarations' (in declaration order).
+    assert main_metrics() == ("success", "spl", "l5_success", "l5_spl")
+    assert compared_metrics() == (*main_metrics(), "false_done_rate")
+    assert [METRICS[k].scale for k in ("success", "ep_length")] == [100.0, 1.0]
+
+
+def test_docs_define_every_declared_metric():
+    table = (Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text()
+    for name in METRICS:
+        assert f"`{name}`" in table, name

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -135,47 +136,120 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     return values
 
 
-#: Aggregate metric keys in table order; ``l5_*`` are over the L>=5 bucket only (SAVN's
-#: ``GreaterThan/5``: bucket means over bucket members).
-METRIC_KEYS = (
-    "success",
-    "spl",
-    "l5_success",
-    "l5_spl",
-    "ep_length",
-    "done_rate",
-    "false_done_rate",
-    "failed_action_rate",
-    "exploration_ratio",
-    "reward",
+@dataclass(frozen=True)
+class Metric:
+    """One aggregate metric, declared once (as habitat-lab registers a ``Measure``): what it is
+    computed from and how every report shows it. Aggregates, seed estimates, the ``mapless eval``
+    and ``mapless compare`` tables and the experiment reports all read these declarations.
+
+    name: its key in aggregates, estimates and the JSON reports.
+    label: its column header in the markdown tables.
+    column: the per-episode value it is taken over (a key of :func:`episode_values`).
+    l5_only: over the L>=5 bucket only (SAVN's ``GreaterThan/5``: bucket means over bucket members).
+    per: a ratio of sums over the whole set, ``sum(column) / sum(per)``, instead of a mean over
+        episodes (so long episodes weigh by their length); such a metric has no interval.
+    percent: shown in percent (rates); else as is (lengths).
+    interval: gets seed estimates with a bootstrap interval (:mod:`mapless.evaluate.stats`).
+    table: ``"main"`` (the main table: SR, SPL and their L>=5 forms), ``"details"`` (the secondary
+        table, mean over seeds) or None (JSON only).
+    compared: ``mapless compare`` and the ablation report show its B − A difference.
+    """
+
+    name: str
+    label: str
+    column: str
+    l5_only: bool = False
+    per: str | None = None
+    percent: bool = True
+    interval: bool = True
+    table: Literal["main", "details"] | None = None
+    compared: bool = False
+
+    def __post_init__(self) -> None:
+        if self.per is not None and self.interval:
+            raise ValueError(f"metric {self.name!r}: a ratio of sums has no bootstrap interval")
+
+    @property
+    def scale(self) -> float:
+        """Factor from the stored fraction to the shown number."""
+        return 100.0 if self.percent else 1.0
+
+    def aggregate(self, values: dict[str, np.ndarray]) -> float:
+        """The metric over a set, from its :func:`episode_values`."""
+        if self.per is not None:
+            return float(values[self.column].sum() / max(values[self.per].sum(), 1.0))
+        chosen = values[self.column][self.episodes(values)]
+        return float(chosen.mean()) if len(chosen) else float("nan")
+
+    def episodes(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """Mask of the episodes the metric is taken over: the L>=5 bucket for ``l5_only``, and only
+        those with a known value (an episode without stored poses has no exploration ratio: 0
+        would pull the mean down)."""
+        column = values[self.column]
+        mask = values["l5"] if self.l5_only else np.ones(len(column), dtype=bool)
+        return mask & np.isfinite(column)
+
+
+#: Every metric by name, in table order (that of the JSON reports' keys too).
+METRICS: dict[str, Metric] = {}
+
+
+def register(metric: Metric) -> Metric:
+    """Declare a metric (its per-episode ``column`` must be one :func:`episode_values` computes)."""
+    if metric.name in METRICS:
+        raise ValueError(f"metric {metric.name!r} is declared twice")
+    METRICS[metric.name] = metric
+    return metric
+
+
+register(Metric("success", "SR", "success", table="main", compared=True))
+register(Metric("spl", "SPL", "spl", table="main", compared=True))
+register(Metric("l5_success", "SR L≥5", "success", l5_only=True, table="main", compared=True))
+register(Metric("l5_spl", "SPL L≥5", "spl", l5_only=True, table="main", compared=True))
+register(Metric("ep_length", "length", "ep_length", percent=False, table="details"))
+register(Metric("done_rate", "Done", "done", table="details"))
+register(Metric("false_done_rate", "false Done", "false_done", table="details", compared=True))
+register(
+    Metric("failed_action_rate", "failed", "failed_actions", per="ep_length", interval=False, table="details")
 )
+register(Metric("exploration_ratio", "explore", "exploration", table="details"))
+register(Metric("reward", "reward", "reward", percent=False, interval=False))
+
+
+def main_metrics() -> tuple[str, ...]:
+    """The main table's columns: SR, SPL, and both over the L>=5 bucket."""
+    return tuple(name for name, m in METRICS.items() if m.table == "main")
+
+
+def detail_metrics() -> tuple[str, ...]:
+    """The secondary table's columns."""
+    return tuple(name for name, m in METRICS.items() if m.table == "details")
+
+
+def compared_metrics() -> tuple[str, ...]:
+    """What ``mapless compare`` and the ablation report show as B − A."""
+    return tuple(name for name, m in METRICS.items() if m.compared)
+
+
+def interval_metrics() -> tuple[Metric, ...]:
+    """The metrics with seed estimates and a bootstrap interval."""
+    return tuple(m for m in METRICS.values() if m.interval)
 
 
 def aggregate(results: Sequence[EpisodeResult]) -> dict[str, float]:
-    """Mean metrics of a list of episodes (fractions, not percent).
+    """Every metric of a list of episodes (fractions, not percent), as :data:`METRICS` declares it.
 
     ``failed_action_rate`` is failed actions / all actions over the whole set (a ratio of sums, so
     long episodes weigh by their length); ``exploration_ratio`` is the per-episode final ratio,
     averaged over episodes.
     """
     if not results:
-        return {"episodes": 0, "l5_episodes": 0, **{k: float("nan") for k in METRIC_KEYS}}
+        return {"episodes": 0, "l5_episodes": 0, **{k: float("nan") for k in METRICS}}
     v = episode_values(results)
-    l5 = v["l5"]
-    mean_or_nan = lambda a: float(a.mean()) if len(a) else float("nan")  # noqa: E731
     return {
         "episodes": len(results),
-        "l5_episodes": int(l5.sum()),
-        "success": mean_or_nan(v["success"]),
-        "spl": mean_or_nan(v["spl"]),
-        "l5_success": mean_or_nan(v["success"][l5]),
-        "l5_spl": mean_or_nan(v["spl"][l5]),
-        "ep_length": mean_or_nan(v["ep_length"]),
-        "done_rate": mean_or_nan(v["done"]),
-        "false_done_rate": mean_or_nan(v["false_done"]),
-        "failed_action_rate": float(v["failed_actions"].sum() / max(v["ep_length"].sum(), 1.0)),
-        "exploration_ratio": mean_or_nan(v["exploration"][np.isfinite(v["exploration"])]),
-        "reward": mean_or_nan(v["reward"]),
+        "l5_episodes": int(v["l5"].sum()),
+        **{name: metric.aggregate(v) for name, metric in METRICS.items()},
     }
 
 

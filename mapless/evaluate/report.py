@@ -14,24 +14,18 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from mapless.errors import MaplessError
-from mapless.evaluate.metrics import EpisodeResult, summarize
+from mapless.evaluate.metrics import (
+    METRICS,
+    EpisodeResult,
+    compared_metrics,
+    detail_metrics,
+    main_metrics,
+    summarize,
+)
 from mapless.evaluate.stats import Difference, Estimate, difference_estimates, seed_estimates
 from mapless.files import write_text
 from mapless.scenes.catalogue import ROOM_TYPES
 
-#: column key -> (header, shown in percent)
-COLUMNS: dict[str, tuple[str, bool]] = {
-    "success": ("SR", True),
-    "spl": ("SPL", True),
-    "l5_success": ("SR L≥5", True),
-    "l5_spl": ("SPL L≥5", True),
-    "ep_length": ("length", False),
-    "done_rate": ("Done", True),
-    "false_done_rate": ("false Done", True),
-    "failed_action_rate": ("failed", True),
-    "exploration_ratio": ("explore", True),
-}
-MAIN_COLUMNS = ("success", "spl", "l5_success", "l5_spl")
 ROOM_NAMES = {
     "kitchen": "Kitchen",
     "living_room": "Living room",
@@ -40,16 +34,12 @@ ROOM_NAMES = {
 }
 
 
-def _scale(key: str) -> float:
-    return 100.0 if COLUMNS.get(key, ("", True))[1] else 1.0
-
-
 def format_estimate(key: str, estimate: Estimate | dict, interval: bool = True) -> str:
     """``61.9 ± 1.2 [58.4, 65.0]`` (± only with several seeds)."""
     e = estimate if isinstance(estimate, dict) else estimate.to_dict()
     if e["mean"] is None or math.isnan(e["mean"]):
         return "–"
-    s = _scale(key)
+    s = METRICS[key].scale
     digits = 1
     text = f"{e['mean'] * s:.{digits}f}"
     if e["seeds"] > 1:
@@ -64,7 +54,7 @@ def format_difference(key: str, difference: Difference | dict) -> str:
     d = difference if isinstance(difference, dict) else difference.to_dict()
     if d["mean"] is None or math.isnan(d["mean"]):
         return "–"
-    s = _scale(key)
+    s = METRICS[key].scale
     return f"{d['mean'] * s:+.1f} [{d['ci_low'] * s:+.1f}, {d['ci_high'] * s:+.1f}]"
 
 
@@ -72,12 +62,14 @@ def difference_record(
     per_seed_a: Sequence[Sequence[EpisodeResult]],
     per_seed_b: Sequence[Sequence[EpisodeResult]],
     room: str | None = None,
+    metrics: Sequence[str] | None = None,
 ) -> dict[str, dict]:
     """JSON-able :func:`~mapless.evaluate.stats.difference_estimates` of B minus A, over all
-    episodes or those of one room type."""
+    episodes or those of one room type, for ``metrics`` (None: the main table's)."""
     if room is not None:
         per_seed_a, per_seed_b = room_results(per_seed_a, room), room_results(per_seed_b, room)
-    return {k: v.to_dict() for k, v in difference_estimates(per_seed_a, per_seed_b).items()}
+    differences = difference_estimates(per_seed_a, per_seed_b, metrics)
+    return {k: v.to_dict() for k, v in differences.items()}
 
 
 def room_results(per_seed: Sequence[Sequence[EpisodeResult]], room: str) -> list[list[EpisodeResult]]:
@@ -88,7 +80,7 @@ def room_results(per_seed: Sequence[Sequence[EpisodeResult]], room: str) -> list
 def format_value(key: str, value: float) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–"
-    return f"{value * _scale(key):.1f}"
+    return f"{value * METRICS[key].scale:.1f}"
 
 
 def markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
@@ -130,14 +122,16 @@ def _room_estimates(per_seed: Sequence[Sequence[EpisodeResult]]) -> dict[str, di
 
 def model_table(
     records: Sequence[dict],
-    columns: Sequence[str] = MAIN_COLUMNS,
+    columns: Sequence[str] | None = None,
     interval: bool = True,
     label: Sequence[str] = ("model",),
 ) -> str:
-    """One row per model record (``model_record``). A record labelled in parts,
-    ``"a3c | variants | shifted"``, fills the ``label`` columns one part each (a markdown row with
-    more cells than its header loses the extra ones, so the parts must match ``label``)."""
-    header = [*label, *(COLUMNS[c][0] for c in columns)]
+    """One row per model record (``model_record``), one column per metric (None: the main table's).
+    A record labelled in parts, ``"a3c | variants | shifted"``, fills the ``label`` columns one part
+    each (a markdown row with more cells than its header loses the extra ones, so the parts must
+    match ``label``)."""
+    columns = main_metrics() if columns is None else columns
+    header = [*label, *headers(columns)]
     rows = []
     for rec in records:
         parts = rec["model"].split(" | ")
@@ -153,9 +147,15 @@ def _cell(estimates: dict, key: str, interval: bool) -> str:
     return format_estimate(key, estimates[key], interval) if key in estimates else "–"
 
 
-def room_table(record: dict, columns: Sequence[str] = MAIN_COLUMNS) -> str:
-    """Per-room-type breakdown of one model record, plus the overall row."""
-    header = ["room type", *(COLUMNS[c][0] for c in columns)]
+def headers(metrics: Sequence[str], prefix: str = "") -> list[str]:
+    """The metrics' column headers (``prefix="Δ "``: those of their differences)."""
+    return [f"{prefix}{METRICS[name].label}" for name in metrics]
+
+
+def room_table(record: dict, columns: Sequence[str] | None = None) -> str:
+    """Per-room-type breakdown of one model record, plus the overall row (None: the main columns)."""
+    columns = main_metrics() if columns is None else columns
+    header = ["room type", *headers(columns)]
     rows = [
         [ROOM_NAMES[room], *(_cell(est, c, False) for c in columns)] for room, est in record["rooms"].items()
     ]
@@ -166,8 +166,8 @@ def room_table(record: dict, columns: Sequence[str] = MAIN_COLUMNS) -> str:
 def details_table(records: Sequence[dict]) -> str:
     """Secondary metrics (mean over seeds, overall): length, Done, false Done, failed actions,
     exploration."""
-    cols = ("ep_length", "done_rate", "false_done_rate", "failed_action_rate", "exploration_ratio")
-    header = ["model", *(COLUMNS[c][0] for c in cols)]
+    cols = detail_metrics()
+    header = ["model", *headers(cols)]
     rows = []
     for rec in records:
         per_seed = [s["overall"] for s in rec["per_seed"]]
@@ -175,10 +175,6 @@ def details_table(records: Sequence[dict]) -> str:
             [rec["model"], *(format_value(c, sum(s[c] for s in per_seed) / len(per_seed)) for c in cols)]
         )
     return markdown(header, rows)
-
-
-#: What ``mapless compare`` reports, B minus A.
-COMPARED = ("success", "spl", "l5_success", "l5_spl", "false_done_rate")
 
 
 def read_results(spec: str | Path) -> tuple[str, list[list[EpisodeResult]]]:
@@ -224,20 +220,22 @@ def comparison_table(
     label_b: str,
     per_seed_b: Sequence[Sequence[EpisodeResult]],
 ) -> str:
-    """A, B and B minus A, paired over the same episodes (an error otherwise), for :data:`COMPARED`."""
+    """A, B and B minus A, paired over the same episodes (an error otherwise), for the metrics
+    declared ``compared``."""
+    compared = compared_metrics()
     try:
-        differences = difference_estimates(per_seed_a, per_seed_b, COMPARED)
+        differences = difference_estimates(per_seed_a, per_seed_b, compared)
         a, b = seed_estimates(per_seed_a), seed_estimates(per_seed_b)
     except ValueError as error:  # different episode sets
         raise MaplessError(f"cannot compare {label_a} with {label_b}: {error}") from None
     rows = [
         [
-            COLUMNS[k][0],
+            METRICS[k].label,
             format_estimate(k, a[k]),
             format_estimate(k, b[k]),
             format_difference(k, differences[k]),
         ]
-        for k in COMPARED
+        for k in compared
     ]
     return markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
 

@@ -21,7 +21,7 @@ from mapless.checkpoint import FINAL_MODEL_FILE, load_file, snapshots, training_
 from mapless.episodes import evalsets
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
-from mapless.evaluate.metrics import EpisodeResult, aggregate
+from mapless.evaluate.metrics import EpisodeResult, aggregate, main_metrics
 from mapless.evaluate.report import read_json, write_json
 from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
@@ -207,7 +207,7 @@ def select_and_report(
             {
                 "episodes": episodes_done,
                 "path": str(path),
-                **{k: m[k] for k in ("success", "spl", "l5_success", "l5_spl")},
+                **{k: m[k] for k in main_metrics()},
                 **_training_progress(path, clock),
             }
         )

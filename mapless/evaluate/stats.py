@@ -20,22 +20,17 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from mapless.evaluate.metrics import EpisodeResult, episode_values
+from mapless.evaluate.metrics import (
+    METRICS,
+    EpisodeResult,
+    Metric,
+    episode_values,
+    interval_metrics,
+    main_metrics,
+)
 
 N_BOOTSTRAP = 2000
 CONFIDENCE = 0.95
-
-#: Metrics that get an interval: name -> (per-episode column, restrict to the L>=5 bucket).
-CI_METRICS: dict[str, tuple[str, bool]] = {
-    "success": ("success", False),
-    "spl": ("spl", False),
-    "l5_success": ("success", True),
-    "l5_spl": ("spl", True),
-    "ep_length": ("ep_length", False),
-    "done_rate": ("done", False),
-    "false_done_rate": ("false_done", False),
-    "exploration_ratio": ("exploration", False),
-}
 
 
 @dataclass(frozen=True)
@@ -84,20 +79,21 @@ def bootstrap_ci(
 
 
 def seed_estimates(per_seed: Sequence[Sequence[EpisodeResult]], seed: int = 0) -> dict[str, Estimate]:
-    """Estimates of the :data:`CI_METRICS` from the results of several seeds on one episode set.
+    """Estimates of the metrics declared with an interval (:data:`~mapless.evaluate.metrics.METRICS`)
+    from the results of several seeds on one episode set.
 
     Episodes are matched by ``index`` across seeds; a seed whose episode list differs is an error
     (it would make the joint resampling meaningless).
     """
-    keys, columns = _aligned_columns(per_seed)
+    _, columns = _aligned_columns(per_seed)
     out: dict[str, Estimate] = {}
-    for name, (column, _) in CI_METRICS.items():
-        mask = _metric_mask(name, columns, len(keys))
-        matrix = np.stack([c[column][mask] for c in columns])
+    for metric in interval_metrics():
+        mask = _metric_mask(metric, columns)
+        matrix = np.stack([c[metric.column][mask] for c in columns])
         per_seed_values = matrix.mean(axis=1) if matrix.shape[1] else np.full(len(columns), np.nan)
         mean, std = mean_std(per_seed_values)
         low, high = bootstrap_ci(matrix, seed=seed)
-        out[name] = Estimate(mean, std, low, high, seeds=len(columns), episodes=int(mask.sum()))
+        out[metric.name] = Estimate(mean, std, low, high, seeds=len(columns), episodes=int(mask.sum()))
     return out
 
 
@@ -120,20 +116,23 @@ class Difference:
 def difference_estimates(
     per_seed_a: Sequence[Sequence[EpisodeResult]],
     per_seed_b: Sequence[Sequence[EpisodeResult]],
-    metrics: Sequence[str] = ("success", "spl", "l5_success", "l5_spl"),
+    metrics: Sequence[str] | None = None,
     seed: int = 0,
 ) -> dict[str, Difference]:
-    """Model B minus model A on the same episode set (matched by ``index``; other sets are an error)."""
+    """Model B minus model A on the same episode set (matched by ``index``; other sets are an error),
+    for ``metrics`` (names of metrics with an interval; None: the main table's)."""
     keys, columns_a = _aligned_columns(per_seed_a)
     keys_b, columns_b = _aligned_columns(per_seed_b)
     if keys_b != keys:
         raise ValueError("both models must be evaluated on the same episodes")
     out: dict[str, Difference] = {}
-    for name in metrics:
-        column = CI_METRICS[name][0]
-        mask = _metric_mask(name, [*columns_a, *columns_b], len(keys))
-        a = np.stack([c[column][mask] for c in columns_a])
-        b = np.stack([c[column][mask] for c in columns_b])
+    for name in main_metrics() if metrics is None else metrics:
+        metric = METRICS[name]
+        if not metric.interval:
+            raise ValueError(f"metric {name!r} has no bootstrap interval, so no paired difference")
+        mask = _metric_mask(metric, [*columns_a, *columns_b])
+        a = np.stack([c[metric.column][mask] for c in columns_a])
+        b = np.stack([c[metric.column][mask] for c in columns_b])
         if not mask.any():
             out[name] = Difference(float("nan"), float("nan"), float("nan"), len(a), len(b), 0)
             continue
@@ -176,12 +175,9 @@ def _aligned_columns(
     return keys, [episode_values(results) for results in ordered]
 
 
-def _metric_mask(name: str, columns: Sequence[dict[str, np.ndarray]], n: int) -> np.ndarray:
-    """The episodes a metric is taken over: the L>=5 bucket for ``l5_*``, and for the exploration
-    ratio only episodes whose poses every seed stored (an episode without them has no known ratio:
-    aggregate() and the exploration curve leave it out too, where 0 would pull the estimate down)."""
-    column, l5_only = CI_METRICS[name]
-    mask = columns[0]["l5"] if l5_only else np.ones(n, dtype=bool)
-    if column == "exploration":
-        mask = mask & np.all([np.isfinite(c[column]) for c in columns], axis=0)
-    return mask
+def _metric_mask(metric: Metric, columns: Sequence[dict[str, np.ndarray]]) -> np.ndarray:
+    """The episodes a metric is taken over (:meth:`~mapless.evaluate.metrics.Metric.episodes`) in
+    every seed: the seeds ran the same episodes, so the first seed's L>=5 bucket is theirs, and an
+    episode counts only where every seed has its value (an exploration ratio needs stored poses)."""
+    known = np.all([np.isfinite(c[metric.column]) for c in columns], axis=0)
+    return metric.episodes(columns[0]) & known

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapless.evaluate.metrics import compared_metrics
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
@@ -183,8 +184,11 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None]) -> Ablation:
             meta = [{"run_dir": run["run_dir"], "model_file": ev.chosen_model(Path(run["run_dir"]), run)}
                     for run in runs]  # fmt: skip
         rec = model_record(f"{focus}: {row.what}", per_seed, {"runs": meta, "row": name, "what": row.what})
-        # Paired over the focus model's seeds of the same numbers (a one-seed row: the first seed).
-        rec["minus_focus"] = difference_record(baseline[: len(per_seed)], per_seed)
+        # Paired over the focus model's seeds of the same numbers (a one-seed row: the first seed),
+        # for the metrics the report's difference table shows (false Done too).
+        rec["minus_focus"] = difference_record(
+            baseline[: len(per_seed)], per_seed, metrics=compared_metrics()
+        )
         records.append(rec)
     return Ablation(_setting(config, ev), records)
 

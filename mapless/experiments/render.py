@@ -8,14 +8,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from mapless.config import to_dict
+from mapless.evaluate.metrics import compared_metrics, main_metrics
 from mapless.evaluate.report import (
-    COLUMNS,
-    COMPARED,
-    MAIN_COLUMNS,
     ROOM_NAMES,
     details_table,
     format_difference,
     format_estimate,
+    headers,
     markdown,
     model_table,
     room_table,
@@ -101,15 +100,13 @@ def _validation_curves(records: list[dict], path: Path) -> list[str]:
 
 def _focus_differences(focus: str, records: list[dict]) -> list[str]:
     """Table 1's comparison of the focus model with each other model, if it has one."""
-    key = "focus_minus_model"
+    key, columns = "focus_minus_model", main_metrics()
     rows = [
-        [rec["model"], *(format_difference(c, rec[key][c]) for c in MAIN_COLUMNS)]
-        for rec in records
-        if key in rec
+        [rec["model"], *(format_difference(c, rec[key][c]) for c in columns)] for rec in records if key in rec
     ]
     if not rows:
         return []
-    header = ["model", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    header = ["model", *headers(columns, "Δ ")]
     return [
         f"{focus} minus each model, in points, with the 95 % interval of the difference over episodes "
         "(paired: the same episodes) and each model's training seeds:",
@@ -184,8 +181,9 @@ def ablation(experiment: str, record: Ablation, out: Path, command: str) -> Rend
     lines = _header(
         record.setting, f"Ablation: what each part of {focus} and of its recipe is worth", command
     )
+    compared = compared_metrics()
     differences = [
-        [rec["row"], rec["what"], *(format_difference(c, rec["minus_focus"][c]) for c in COMPARED)]
+        [rec["row"], rec["what"], *(format_difference(c, rec["minus_focus"][c]) for c in compared)]
         for rec in records
         if "minus_focus" in rec
     ]
@@ -195,7 +193,7 @@ def ablation(experiment: str, record: Ablation, out: Path, command: str) -> Rend
         f"Each row minus {focus}, in points, with the 95 % interval of the difference over episodes "
         f"(paired: the same episodes, and {focus}'s seeds of the same numbers):",
         "",
-        markdown(["row", "change", *(f"Δ {COLUMNS[c][0]}" for c in COMPARED)], differences),
+        markdown(["row", "change", *headers(compared, "Δ ")], differences),
         "",
     ]
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
@@ -294,10 +292,10 @@ def _comparison_table(comparisons: list[dict]) -> str:
     """One row per ``{"comparison", "test_on", **difference_record}``: its paired differences."""
     if not comparisons:
         return "(none)"
-    header = ["comparison", "tested on", *(f"Δ {COLUMNS[c][0]}" for c in MAIN_COLUMNS)]
+    columns = main_metrics()
+    header = ["comparison", "tested on", *headers(columns, "Δ ")]
     rows = [
-        [d["comparison"], d["test_on"], *(format_difference(c, d[c]) for c in MAIN_COLUMNS)]
-        for d in comparisons
+        [d["comparison"], d["test_on"], *(format_difference(c, d[c]) for c in columns)] for d in comparisons
     ]
     return markdown(header, rows)
 
