@@ -492,3 +492,18 @@ def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
     # The focus model and six rows that train; row a only evaluates.
     assert planned_runs(small) == {"cvmeta": 7}
     assert planned_runs(load_experiment("ablation", "small", seeds=2)) == {"cvmeta": 14}
+
+
+def test_selection_may_read_a_subset_while_the_report_reads_every_episode(workspace):
+    from mapless.experiments.evaluator import Evaluator
+
+    _root, config = workspace
+    ev = Evaluator(
+        load_experiment("table1", "smoke", path=config, overrides=["eval.select_per_room=2"]), print
+    )
+    assert (len(ev.select_episodes), len(ev.report_episodes)) == (2, 6)
+    whole = Evaluator(load_experiment("table1", "smoke", path=config), print)
+    assert len(whole.select_episodes) == 6
+    assert [e.start for e in ev.select_episodes] == [e.start for e in whole.select_episodes[:2]]
+    with pytest.raises(ConfigError, match="select_per_room"):
+        load_experiment("table1", "smoke", path=config, overrides=["eval.select_per_room=0"])
