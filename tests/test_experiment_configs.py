@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mapless.config import ConfigError, to_dict
+from mapless.config import ConfigError, read_mapping, to_dict
 from mapless.errors import UnknownNameError
 from mapless.experiments import (
     BUDGETS,
@@ -128,3 +128,18 @@ def _run_folders() -> dict[str, str]:
 
 def test_every_shipped_run_keeps_its_folder() -> None:
     assert _run_folders() == RUN_FOLDERS
+
+
+def test_an_experiment_that_only_renames_another_is_an_alias() -> None:
+    """Two shipped files that resolve alike but for ``experiment`` are not two copies to keep in
+    step: one of them says only ``extends:`` and ``experiment:`` (the figures reuse Table 1's
+    configuration, so they extend its file)."""
+    resolved = {
+        (e, b): {**to_dict(read_experiment(config_path(e, b))), "experiment": None} for e, b in SHIPPED
+    }
+    pairs = [(a, b) for a in SHIPPED for b in SHIPPED if a < b and resolved[a] == resolved[b]]
+    # figure3 = table1 (full); figure3 = figures45 = table1 (small: three pairs); figure3 = figures45 (smoke)
+    assert len(pairs) == 5
+    for pair in pairs:
+        aliases = [p for p in pair if set(read_mapping(config_path(*p))) == {"extends", "experiment"}]
+        assert aliases, f"{pair}: the same configuration written twice; make one `extends:` the other"
