@@ -21,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "eval",
         _eval,
         help="evaluate a trained model (run folder or model file), or 'random'/'oracle', on a fixed episode set",
-        description="Writes <out>/<split>.json (metrics, bootstrap intervals, every episode) and <split>.md.",
+        description="Writes <out>/<split>.json (metrics, bootstrap intervals, every episode) and <split>.md; "
+        "with --episodes FILE, <out>/<FILE's name>.json and .md.",
     )
     ev.add_argument(
         "model", help="run folder, model file (.pt), or 'random' / 'oracle' (untrained baselines)"
