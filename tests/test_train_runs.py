@@ -22,6 +22,7 @@ from mapless.config import ConfigError, from_dict, load_config
 from mapless.train.builders import new_model
 from mapless.train.config import TrainConfig
 from mapless.train.gradients import clip_gradients
+from mapless.train.recipes import load_train_config
 from mapless.train.run import resume_config, train
 from mapless.train.runtime import configure_torch
 
@@ -269,7 +270,8 @@ def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.Ca
     "path", sorted(Path(__file__).parent.parent.glob("experiments/train_*.yaml")), ids=lambda p: p.name
 )
 def test_shipped_training_configs_load(path: Path) -> None:
-    config = load_config(TrainConfig, path)
+    """As `mapless train` reads them: over the recipe a file names (experiments/recipes/)."""
+    config = load_train_config(path)
     assert config.episodes > 0 or config.frames > 0
 
 
