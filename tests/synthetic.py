@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapless.scenes.layout import Scene, SceneObject
+from mapless.scenes.floor_plans import Scene, SceneObject
 
 
 def box(

@@ -12,10 +12,11 @@ import pytest
 
 from mapless.errors import MaplessError
 from mapless.scenes.arrangements import arrangement_of, read_rearrangement
-from mapless.scenes.catalogue import canonical_scene, resolve_scenes, room_type_of, split_of
+from mapless.scenes.catalogue import canonical_scene, parse_variant, resolve_scenes, room_type_of, split_of
+from mapless.scenes.floor_plans import default_poses
 from mapless.scenes.generator import generate, receptacle_prior
 from mapless.scenes.layout import load_scene
-from mapless.scenes.variants import default_poses, load_variant, parse_variant
+from mapless.scenes.variants import load_variant
 from mapless.sim import cache
 from mapless.sim.config import SimConfig
 
@@ -192,8 +193,8 @@ def test_the_prior_comes_from_the_training_floor_plans_only(monkeypatch):
     from mapless.scenes import generator
 
     seen: list[str] = []
-    original = generator.load_scene
-    monkeypatch.setattr(generator, "load_scene", lambda name: seen.append(name) or original(name))
+    original = generator.load_floor_plan
+    monkeypatch.setattr(generator, "load_floor_plan", lambda name: seen.append(name) or original(name))
     generator.receptacle_prior.cache_clear()
     try:
         generator.receptacle_prior("bedroom")

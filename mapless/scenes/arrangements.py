@@ -28,9 +28,13 @@ from pathlib import Path
 
 from mapless.errors import MaplessError
 from mapless.offline.safe_pickle import check_opcodes
+from mapless.scenes.catalogue import PHASES
 
 BUILTIN_SOURCES = {"rearrange2023": "variants/rearrange2023_train.pkl.gz"}
-PHASES = {"target": ("target_poses", "target_openness"), "start": ("starting_poses", "start_openness")}
+#: Each phase's (PHASES) keys of the poses and of the openness in a dataset episode.
+PHASE_KEYS = dict(
+    zip(PHASES, (("target_poses", "target_openness"), ("starting_poses", "start_openness")), strict=True)
+)
 
 
 @dataclass(frozen=True)
@@ -131,7 +135,7 @@ def arrangement_of(source: str, floor_plan: str, index: int, phase: str = "targe
         raise MaplessError(f"unknown arrangement phase {phase!r}; valid: {', '.join(PHASES)}")
     episode = episodes[index]
     where = f"{source}, {floor_plan} episode {index}"
-    pose_key, open_key = PHASES[phase]
+    pose_key, open_key = PHASE_KEYS[phase]
     if not isinstance(episode, dict) or not isinstance(episode.get(pose_key), list):
         raise MaplessError(f"{where}: no {pose_key!r} list (not the rearrangement dataset's format)")
     try:

@@ -6,11 +6,17 @@ Room type r in {kitchen, living_room, bedroom, bathroom} owns FloorPlan{100*i + 
 n 21-30, as the paper (and MJOLNIR) did; it is labelled as such wherever it is reported. The
 ``reference`` protocol uses the split of SAVN's published episode pickles: ``ref_val`` = the odd
 n 21-29, ``ref_test`` = the even n 22-30 (mapless.episodes.protocols).
+
+A scene variant, a floor plan under another arrangement of its small objects
+(mapless.scenes.variants), is named ``FloorPlanN@SOURCE:INDEX[:start]``; the syntax is here, with
+the floor plans' names, so that every module naming scenes reads it without loading arrangements.
 """
 
 from __future__ import annotations
 
-from mapless.errors import UnknownNameError
+from dataclasses import dataclass
+
+from mapless.errors import MaplessError, UnknownNameError
 
 ROOM_TYPES: tuple[str, ...] = ("kitchen", "living_room", "bedroom", "bathroom")
 SPLITS: dict[str, range] = {
@@ -23,6 +29,12 @@ SPLITS: dict[str, range] = {
     "all": range(1, 31),
 }
 _ROOM_OFFSET = {"kitchen": 0, "living_room": 200, "bedroom": 300, "bathroom": 400}
+#: A variant's source of procedurally generated arrangements (mapless.scenes.generator).
+GENERATED = "gen"
+#: Which arrangement of a dataset episode a variant takes: its goal (``target``, the default) or the
+#: shuffled one it starts from (``start``); mapless.scenes.arrangements reads each from the file.
+PHASES = ("target", "start")
+SYNTAX = "FloorPlanN@SOURCE:INDEX[:start] (SOURCE: rearrange2023, gen, or an arrangement file)"
 _SCENE_SUMMARY = "FloorPlan1-30 (kitchens), FloorPlan201-230 (living rooms), FloorPlan301-330 (bedrooms), FloorPlan401-430 (bathrooms)"
 
 
@@ -52,10 +64,36 @@ def canonical_scene(scene: str) -> str:
     scene variant's name (``FloorPlan28@gen:3``, mapless.scenes.variants) keeps its arrangement, in
     canonical form, after checking its syntax."""
     if "@" in scene:
-        from mapless.scenes.variants import parse_variant  # the variant syntax builds on this module
-
         return str(parse_variant(scene))
     return f"FloorPlan{_number(scene)}"
+
+
+@dataclass(frozen=True)
+class VariantName:
+    floor_plan: str
+    source: str
+    index: int
+    phase: str = "target"
+
+    def __str__(self) -> str:
+        suffix = "" if self.phase == "target" else f":{self.phase}"
+        return f"{self.floor_plan}@{self.source}:{self.index}{suffix}"
+
+
+def parse_variant(name: str) -> VariantName:
+    """The parts of a variant name; a malformed one is an error quoting the syntax."""
+    base, _, rest = name.partition("@")
+    head, _, last = rest.rpartition(":")
+    phase = "target"
+    if last in PHASES and ":" in head:
+        phase = last
+        head, _, last = head.rpartition(":")
+    if not head or not last.isdigit():
+        raise MaplessError(f"scene variant {name!r}: expected {SYNTAX}")
+    if head == GENERATED and phase != "target":
+        raise MaplessError(f"scene variant {name!r}: a generated arrangement has no {phase!r} phase")
+    _number(base)  # raises on a name outside the 120 floor plans
+    return VariantName(floor_plan_of(base), head, int(last), phase)
 
 
 def floor_plan_of(scene: str) -> str:

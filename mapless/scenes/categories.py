@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from importlib import resources
 
 from mapless.errors import UnknownNameError
+from mapless.scenes.floor_plans import raw_scenes
 
 V1_TO_V5: dict[str, tuple[str, ...]] = {
     "TableTop": ("DiningTable", "CoffeeTable"),
@@ -79,9 +80,7 @@ def category_set(name: str = "mjolnir101") -> CategorySet:
                 type_to_index[v5_type] = i
         return CategorySet(name, names, type_to_index)
     if name == "all_types":
-        from mapless.scenes.layout import _raw_scenes
-
-        types = sorted({o["type"] for s in _raw_scenes().values() for o in s["objects"]} - {"Floor"})
+        types = sorted({o["type"] for s in raw_scenes().values() for o in s["objects"]} - {"Floor"})
         return CategorySet(name, tuple(types), {t: i for i, t in enumerate(types)})
     raise UnknownNameError("category set", name, CATEGORY_SETS)
 

@@ -29,7 +29,14 @@ import numpy as np
 
 from mapless.scenes.arrangements import Arrangement, ObjectPose
 from mapless.scenes.catalogue import _number, floor_plan_of, scene_names
-from mapless.scenes.layout import CLOSING_RECEPTACLES, Scene, SceneObject, load_scene
+from mapless.scenes.floor_plans import (
+    CLOSING_RECEPTACLES,
+    Scene,
+    SceneObject,
+    default_poses,
+    load_floor_plan,
+    turn_xz,
+)
 
 #: Bump when the rule changes: it seeds the generator, so every generated arrangement changes with it.
 GENERATOR_VERSION = 1
@@ -57,7 +64,7 @@ def receptacle_prior(room_type: str) -> dict[str, dict[str, float]]:
     """P(receptacle type | object type) of a room type, counted in the training floor plans' layouts."""
     counts: dict[str, Counter] = defaultdict(Counter)
     for name in scene_names("train", (room_type,)):
-        scene = load_scene(name)
+        scene = load_floor_plan(name)
         for obj in scene.objects:
             support = furniture_support(scene, obj) if obj.pickupable else None
             if support is not None:
@@ -70,14 +77,12 @@ def receptacle_prior(room_type: str) -> dict[str, dict[str, float]]:
 def _offset_and_extent(obj: SceneObject, turn: float) -> tuple[np.ndarray, np.ndarray]:
     """The footprint's corners relative to the box centre after turning by ``turn`` degrees, and the
     half extents (x, z) of their axis-aligned box."""
-    from mapless.scenes.variants import _turn
-
     centre = np.asarray(obj.center, dtype=float)[[0, 2]]
     if obj.footprint is not None:
         corners = np.asarray(obj.footprint, dtype=float) - centre
     else:
         corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(obj.size)[[0, 2]] / 2
-    relative = _turn(corners, turn)
+    relative = turn_xz(corners, turn)
     return relative, np.abs(relative).max(axis=0)
 
 
@@ -89,10 +94,8 @@ def _overlaps(corners: np.ndarray, placed: list[np.ndarray]) -> bool:
 
 def generate(floor_plan: str, seed: int) -> Arrangement:
     """The generated arrangement ``seed`` of ``floor_plan`` (module docstring)."""
-    from mapless.scenes.variants import _turn, default_poses
-
     floor_plan = floor_plan_of(floor_plan)
-    scene = load_scene(floor_plan)
+    scene = load_floor_plan(floor_plan)
     prior = receptacle_prior(scene.room_type)
     defaults = default_poses(floor_plan)
     rng = np.random.default_rng([GENERATOR_VERSION, _number(floor_plan), seed])
@@ -136,7 +139,7 @@ def generate(floor_plan: str, seed: int) -> Arrangement:
             center = np.array([xz[0], bottom + obj.size[1] / 2, xz[1]])
         default = defaults[obj.name]
         pivot_offset = np.asarray(obj.center) - np.asarray(default[:3])
-        pivot_offset[[0, 2]] = _turn(pivot_offset[None, [0, 2]], turn)[0]
+        pivot_offset[[0, 2]] = turn_xz(pivot_offset[None, [0, 2]], turn)[0]
         pivot = center - pivot_offset
         poses.append(
             ObjectPose(

@@ -1,127 +1,15 @@
-"""One floor plan's static layout: objects with boxes and receptacles, floor extent, reachable grid."""
+"""Any scene's layout by name: a built-in floor plan's (mapless.scenes.floor_plans) or a scene
+variant's, the floor plan under another arrangement (mapless.scenes.variants)."""
 
 from __future__ import annotations
 
-import functools
-import gzip
-import json
-from dataclasses import dataclass
-from importlib import resources
-
-import numpy as np
-
-from mapless.scenes.catalogue import canonical_scene, room_type_of, split_of
-
-SCENE_FILE = "scenes/ithor_v5_scenes.json.gz"
-
-#: Receptacles whose contents are hidden while closed (AI2-THOR default state is read per object).
-CLOSING_RECEPTACLES = frozenset({"Fridge", "Cabinet", "Drawer", "Microwave", "Safe", "Box", "LaundryHamper"})
+from mapless.scenes.catalogue import canonical_scene
+from mapless.scenes.floor_plans import Scene, load_floor_plan
+from mapless.scenes.variants import load_variant
 
 
-@dataclass(frozen=True)
-class SceneObject:
-    id: str
-    type: str
-    center: tuple[float, float, float]
-    size: tuple[float, float, float]
-    footprint: tuple[tuple[float, float], ...] | None  # oriented xz corners, movable objects only
-    parents: tuple[str, ...]
-    receptacle: bool
-    pickupable: bool
-    moveable: bool
-    openable: bool
-    is_open: bool
-    name: str = ""  # AI2-THOR's object name (``Apple_3fef4551``), what arrangements refer to
-
-    @property
-    def box_min(self) -> np.ndarray:
-        return np.asarray(self.center) - np.asarray(self.size) / 2
-
-    @property
-    def box_max(self) -> np.ndarray:
-        return np.asarray(self.center) + np.asarray(self.size) / 2
-
-    @property
-    def hides_contents(self) -> bool:
-        return self.type in CLOSING_RECEPTACLES and not self.is_open
-
-
-@dataclass(frozen=True)
-class Scene:
-    name: str
-    room_type: str
-    split: str
-    floor_center: tuple[float, float, float]
-    floor_size: tuple[float, float, float]
-    reachable: np.ndarray  # (n, 2) x, z on the 0.25 m grid
-    objects: tuple[SceneObject, ...]
-
-    def object(self, object_id: str) -> SceneObject:
-        return self.objects[self.object_index[object_id]]
-
-    @functools.cached_property
-    def object_index(self) -> dict[str, int]:
-        return {o.id: i for i, o in enumerate(self.objects)}
-
-    def instances_of(self, object_type: str) -> list[int]:
-        return [i for i, o in enumerate(self.objects) if o.type == object_type]
-
-    def inside_closed_receptacle(self, index: int) -> bool:
-        """True when the object, or any receptacle holding it, sits in a closed container."""
-        seen: set[str] = set()
-        stack = list(self.objects[index].parents)
-        while stack:
-            parent_id = stack.pop()
-            if parent_id in seen or parent_id not in self.object_index:
-                continue
-            seen.add(parent_id)
-            parent = self.object(parent_id)
-            if parent.hides_contents:
-                return True
-            stack.extend(parent.parents)
-        return False
-
-
-@functools.cache
-def _raw_scenes() -> dict:
-    with resources.files("mapless.data").joinpath(SCENE_FILE).open("rb") as f:
-        return json.loads(gzip.decompress(f.read()))["scenes"]
-
-
-def _as_object(raw: dict) -> SceneObject:
-    footprint = tuple(tuple(p) for p in raw["footprint"]) if raw["footprint"] else None
-    return SceneObject(
-        id=raw["id"],
-        type=raw["type"],
-        center=tuple(raw["center"]),
-        size=tuple(raw["size"]),
-        footprint=footprint,
-        parents=tuple(raw["parents"]),
-        receptacle=raw["receptacle"],
-        pickupable=raw["pickupable"],
-        moveable=raw["moveable"],
-        openable=raw["openable"],
-        is_open=raw["is_open"],
-        name=raw.get("name", ""),
-    )
-
-
-@functools.cache
 def load_scene(name: str) -> Scene:
-    """The built-in layout of ``FloorPlanN`` (``_physics`` suffix accepted), or of a scene variant
-    ``FloorPlanN@SOURCE:INDEX`` (mapless.scenes.variants): the floor plan under another arrangement."""
+    """The layout of ``FloorPlanN`` (``_physics`` suffix accepted) or of a scene variant
+    ``FloorPlanN@SOURCE:INDEX`` (both loaded once: their loaders cache)."""
     name = canonical_scene(name)
-    if "@" in name:
-        from mapless.scenes.variants import load_variant  # variants build on this module
-
-        return load_variant(name)
-    raw = _raw_scenes()[name]
-    return Scene(
-        name=name,
-        room_type=room_type_of(name),
-        split=split_of(name),
-        floor_center=tuple(raw["floor_center"]),
-        floor_size=tuple(raw["floor_size"]),
-        reachable=np.asarray(raw["reachable"], dtype=np.float64),
-        objects=tuple(_as_object(o) for o in raw["objects"] if o["type"] != "Floor"),
-    )
+    return load_variant(name) if "@" in name else load_floor_plan(name)

@@ -22,24 +22,31 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import gzip
 import hashlib
-import json
-from dataclasses import dataclass
-from importlib import resources
 
 import numpy as np
 
 from mapless.errors import MaplessError
-from mapless.scenes.arrangements import PHASES, Arrangement, ObjectPose, arrangement_of
-from mapless.scenes.catalogue import _number, floor_plan_of
-from mapless.scenes.layout import Scene, SceneObject, load_scene
+from mapless.scenes.arrangements import (
+    Arrangement,
+    ObjectPose,
+    arrangement_of,
+    episode_count,
+    read_rearrangement,
+)
+from mapless.scenes.catalogue import GENERATED, VariantName, floor_plan_of, parse_variant
+from mapless.scenes.floor_plans import (
+    Scene,
+    SceneObject,
+    default_poses,
+    default_poses_digest,
+    load_floor_plan,
+    turn_xz,
+)
+from mapless.scenes.generator import generate
 
-GENERATED = "gen"
-POSE_FILE = "scenes/ithor_v5_poses.json.gz"
 #: Bump when applying an arrangement changes for the same arrangement (part of the cache key).
 VARIANT_VERSION = 1
-SYNTAX = "FloorPlanN@SOURCE:INDEX[:start] (SOURCE: rearrange2023, gen, or an arrangement file)"
 #: How far (m) a listed object's box may stand off the surface it rests on: the dataset's poses are
 #: physics-settled, the boxes rounded to 1 mm.
 SURFACE_TOLERANCE = 0.05
@@ -50,53 +57,12 @@ FLOOR_HEIGHT = 0.05
 SAME_VERSION_SHARE = 0.5
 
 
-@dataclass(frozen=True)
-class VariantName:
-    floor_plan: str
-    source: str
-    index: int
-    phase: str = "target"
-
-    def __str__(self) -> str:
-        suffix = "" if self.phase == "target" else f":{self.phase}"
-        return f"{self.floor_plan}@{self.source}:{self.index}{suffix}"
-
-
-def parse_variant(name: str) -> VariantName:
-    """The parts of a variant name; a malformed one is an error quoting the syntax."""
-    base, _, rest = name.partition("@")
-    head, _, last = rest.rpartition(":")
-    phase = "target"
-    if last in PHASES and ":" in head:
-        phase = last
-        head, _, last = head.rpartition(":")
-    if not head or not last.isdigit():
-        raise MaplessError(f"scene variant {name!r}: expected {SYNTAX}")
-    if head == GENERATED and phase != "target":
-        raise MaplessError(f"scene variant {name!r}: a generated arrangement has no {phase!r} phase")
-    _number(base)  # raises on a name outside the 120 floor plans
-    return VariantName(floor_plan_of(base), head, int(last), phase)
-
-
 def arrangement_for(name: str | VariantName) -> Arrangement:
     """The arrangement a variant name stands for."""
     spec = parse_variant(name) if isinstance(name, str) else name
     if spec.source == GENERATED:
-        from mapless.scenes.generator import generate  # the generator builds on this module
-
         return generate(spec.floor_plan, spec.index)
     return arrangement_of(spec.source, spec.floor_plan, spec.index, spec.phase)
-
-
-@functools.cache
-def _pose_data() -> dict:
-    raw = resources.files("mapless.data").joinpath(POSE_FILE).read_bytes()
-    return {"digest": hashlib.sha256(raw).hexdigest(), "scenes": json.loads(gzip.decompress(raw))["scenes"]}
-
-
-def default_poses(floor_plan: str) -> dict[str, tuple[float, float, float, float]]:
-    """Default pivot ``(x, y, z, yaw)`` of the floor plan's movable objects, by AI2-THOR name."""
-    return {k: tuple(v) for k, v in _pose_data()["scenes"][floor_plan].items()}
 
 
 def cache_stem(name: str) -> str:
@@ -105,22 +71,14 @@ def cache_stem(name: str) -> str:
     if "@" not in name:
         return floor_plan_of(name)
     arrangement = arrangement_for(name)
-    key = f"{arrangement.digest()}|{_pose_data()['digest']}|{VARIANT_VERSION}"
+    key = f"{arrangement.digest()}|{default_poses_digest()}|{VARIANT_VERSION}"
     return f"{arrangement.floor_plan}@{hashlib.sha256(key.encode()).hexdigest()[:16]}"
 
 
 @functools.cache
 def load_variant(name: str) -> Scene:
     spec = parse_variant(name)
-    return apply_arrangement(load_scene(spec.floor_plan), arrangement_for(spec), str(spec))
-
-
-def _turn(points: np.ndarray, degrees: float) -> np.ndarray:
-    """Rotate ``[n, 2]`` xz offsets by a yaw in degrees, as AI2-THOR turns (clockwise seen from
-    above: +z turns to +x)."""
-    a = np.radians(degrees)
-    c, s = np.cos(a), np.sin(a)
-    return np.stack([points[:, 0] * c + points[:, 1] * s, -points[:, 0] * s + points[:, 1] * c], axis=1)
+    return apply_arrangement(load_floor_plan(spec.floor_plan), arrangement_for(spec), str(spec))
 
 
 def moved_object(
@@ -131,12 +89,12 @@ def moved_object(
     pivot0, pivot = np.asarray(default[:3]), np.asarray(pose, dtype=float)
     turn = yaw - default[3]
     offset = np.asarray(obj.center) - pivot0
-    offset[[0, 2]] = _turn(offset[None, [0, 2]], turn)[0]
+    offset[[0, 2]] = turn_xz(offset[None, [0, 2]], turn)[0]
     center = pivot + offset
     size = np.asarray(obj.size, dtype=float)
     footprint = None
     if obj.footprint is not None:
-        corners = _turn(np.asarray(obj.footprint) - pivot0[[0, 2]], turn) + pivot[[0, 2]]
+        corners = turn_xz(np.asarray(obj.footprint) - pivot0[[0, 2]], turn) + pivot[[0, 2]]
         footprint = tuple(tuple(round(float(v), 4) for v in p) for p in corners)
         size[[0, 2]] = corners.max(axis=0) - corners.min(axis=0)
     return dataclasses.replace(
@@ -229,8 +187,6 @@ def variants_of(floor_plan: str, source: str, count: int) -> list[str]:
     names: list[str] = []
     if source == GENERATED:
         return [f"{floor_plan_of(floor_plan)}@{GENERATED}:{i}" for i in range(count)]
-    from mapless.scenes.arrangements import episode_count
-
     for index in range(episode_count(source, floor_plan_of(floor_plan))):
         if len(names) == count:
             break
@@ -248,13 +204,11 @@ def source_facts(source: str, phase: str = "target") -> dict:
     how many there are and apply, the share of listed objects whose pivot sits more than 0.5 m from its
     default, the share of pickupable objects each leaves out (removed), and the share of (floor plan,
     pickupable type) pairs that no arrangement of that floor plan lists."""
-    from mapless.scenes.arrangements import read_rearrangement
-
     data = read_rearrangement(source)
     counts = {"arrangements": 0, "applicable": 0, "listed": 0, "moved_05": 0, "slots": 0, "removed": 0}
     type_pairs, absent_pairs = 0, 0
     for floor_plan in sorted(data):
-        scene, defaults = load_scene(floor_plan), default_poses(floor_plan)
+        scene, defaults = load_floor_plan(floor_plan), default_poses(floor_plan)
         pickupable = [o for o in scene.objects if o.pickupable]
         listed_types: set[str] = set()
         for index in range(len(data[floor_plan])):

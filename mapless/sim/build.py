@@ -7,7 +7,7 @@ import functools
 import numpy as np
 
 from mapless.scenes.categories import category_set
-from mapless.scenes.layout import Scene
+from mapless.scenes.floor_plans import Scene
 from mapless.sim.config import SimConfig
 from mapless.sim.context import context_from_boxes
 from mapless.sim.raycast import FLOOR, WALL, Frame, RayCaster

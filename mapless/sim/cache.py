@@ -29,7 +29,8 @@ import numpy as np
 from mapless.errors import MaplessError
 from mapless.files import replacing, unwritable
 from mapless.scenes.catalogue import canonical_scene
-from mapless.scenes.layout import SCENE_FILE, load_scene
+from mapless.scenes.floor_plans import SCENE_FILE
+from mapless.scenes.layout import load_scene
 from mapless.scenes.variants import cache_stem
 from mapless.sim.build import build_scene_data
 from mapless.sim.config import SimConfig

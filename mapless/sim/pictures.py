@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from mapless.scenes.layout import Scene
+from mapless.scenes.floor_plans import Scene
 from mapless.sim.config import SimConfig
 from mapless.sim.raycast import FLOOR, WALL, RayCaster
 from mapless.sim.room import InteriorMask, obstacle_polygons

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapless.scenes.layout import Scene
+from mapless.scenes.floor_plans import Scene
 from mapless.sim.camera import camera_basis, pixel_rays, project
 from mapless.sim.config import SimConfig
 from mapless.sim.room import wall_distance_lookup

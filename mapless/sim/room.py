@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from mapless.scenes.layout import Scene
+from mapless.scenes.floor_plans import Scene
 
 CELL = 0.02  # m, resolution of the interior mask
 AZIMUTH_STEP = 0.5  # degrees
