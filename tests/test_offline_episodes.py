@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import pickle
 import sys
 import types
@@ -14,7 +16,7 @@ import torch
 from mapless.episodes import Episode
 from mapless.offline import OfflineFormatError, import_episode_file, offline_library, read_episode_file
 from mapless.offline.episode_writer import write_episode_file
-from mapless.offline.episodes import RawEpisode, map_episodes
+from mapless.offline.episodes import SKIP_CAUSES, RawEpisode, map_episodes
 from mapless.sim.scene_data import pose_key
 
 #: 50 of the 1000 published HOZ bathroom validation episodes, in their original pickle format
@@ -66,10 +68,11 @@ def test_hoz_sample_maps_onto_built_in_scenes(sample):
 
 
 def test_unmappable_episodes_are_listed():
+    # FloorPlan401 has two ToiletPaper objects, neither near (40, 40).
     raw = [
         RawEpisode(0, "FloorPlan999", "Mug", ("Mug|+00.00|+00.00|+00.00",), (0.0, 0.0, 0, 0)),
         RawEpisode(1, "FloorPlan401", "Mug", ("Mug|+00.00|+00.00|+00.00",), (0.0, 0.0, 0, 0)),
-        RawEpisode(2, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (0.0, 0.0, 0, 0)),
+        RawEpisode(2, "FloorPlan401", "ToiletPaper", ("ToiletPaper|+40.00|+00.00|+40.00",), (0.0, 0.0, 0, 0)),
         RawEpisode(3, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (0.0, 0.0, 10, 0)),
     ]
     report = map_episodes(raw)
@@ -78,6 +81,104 @@ def test_unmappable_episodes_are_listed():
     assert reasons[0].startswith("unknown scene")
     assert reasons[1].startswith("no object of that type in the scene")
     assert reasons[2].startswith("no object of that type nearby")
+    assert reasons[3].startswith("start yaw not on the grid")
+    assert report.causes() == {
+        "unknown scene": 1,
+        "no object of that type in the scene": 1,
+        "no object of that type nearby": 1,
+        "start yaw not on the grid": 1,
+    }
+    assert set(report.causes()) <= set(SKIP_CAUSES)
+
+
+def test_target_ids_that_moved_between_versions_or_are_missing(monkeypatch):
+    """The target-id causes on ids of the published HOZ files (mapless/data/episodes/hoz22)."""
+    start = (0.0, 0.0, 0, 0)
+    # The GarbageCan of FloorPlan426 lies 1.73 m from the published one; both are the only one.
+    moved = RawEpisode(0, "FloorPlan426", "GarbageCan", ("GarbageCan|-00.85|+00.00|+03.15",), start)
+    # Six chairs in FloorPlan221's list, two of which AI2-THOR 5 lacks (the nearest is 3.9 m away).
+    chairs = (
+        "Chair|+00.77|+00.09|-01.15", "Chair|+00.77|+00.09|-02.46", "Chair|-03.07|+00.09|-00.88",
+        "Chair|-03.07|+00.09|-01.52", "Chair|-03.79|+00.09|-00.84", "Chair|-03.81|+00.09|-01.55",
+    )  # fmt: skip
+    dropped = RawEpisode(1, "FloorPlan221", "Chair", chairs, start)
+    # One of FloorPlan224's four chairs alone, 1.25 m from the nearest of the scene's three.
+    far = RawEpisode(2, "FloorPlan224", "Chair", ("Chair|+03.14|+00.02|-01.63",), start)
+    absent = RawEpisode(3, "FloorPlan22", "Chair", ("Chair|+01.07|+00.00|+01.56",), start)
+    report = map_episodes([moved, dropped, far, absent], max_start_distance=10.0)
+    assert [e.episode_id for e in report.episodes] == ["import/bathroom/0000", "import/living_room/0001"]
+    assert report.episodes[0].target_ids == ("GarbageCan|-02.11|00.00|+01.96",)
+    assert report.episodes[1].target_ids == (
+        "Chair|-03.07|+00.10|-00.88", "Chair|-03.07|+00.10|-01.52",
+        "Chair|-03.79|+00.10|-00.84", "Chair|-03.81|+00.10|-01.55",
+    )  # fmt: skip
+    assert (report.moved_ids, report.dropped_ids, report.nearest_ids, report.exact_ids) == (1, 2, 4, 0)
+    reasons = dict(report.skipped)
+    assert reasons[2].startswith(
+        "no object of that type nearby: nearest 'Chair|+02.04|+00.03|-02.23' is 1.25 m"
+    )
+    assert reasons[3].startswith("no object of that type in the scene: Chair")
+    # Without the moved-instance rule's premise (one listed, one in the scene) nothing far maps.
+    two = RawEpisode(
+        4, "FloorPlan426", "GarbageCan", ("GarbageCan|-00.85|+00.00|+03.15", "GarbageCan|+9|+0|+9"), start
+    )
+    assert dict(map_episodes([two]).skipped)[4].startswith("no object of that type nearby")
+
+
+@pytest.fixture(scope="module")
+def published() -> dict[str, list[RawEpisode]]:
+    """The eight shipped published files, read."""
+    from mapless.episodes.evalsets import PUBLISHED, published_path
+    from mapless.scenes.catalogue import ROOM_TYPES
+
+    files = {}
+    for room in ROOM_TYPES:
+        for split in PUBLISHED["hoz22"][1]:
+            path = published_path("hoz22", split, room)
+            episodes, bad = read_episode_file(path)
+            assert not bad
+            files[path.name] = episodes
+    return files
+
+
+def test_the_shipped_published_files_are_the_published_bytes():
+    import gzip
+    import hashlib
+
+    from mapless.episodes.evalsets import published_path
+
+    # sha256 of sx-zhang/HOZ @ dd5871fc test_val_split/*_22.pkl (mapless/data/NOTICE.md).
+    expected = {
+        ("kitchen", "ref_val"): "47f30f4b51a09129f235bdc06b01deb7f2b36627ab596728904a0a497706de91",
+        ("kitchen", "ref_test"): "81f31226600fea9338b999db81b688185c6bc01421199aad8cf40d4cdaaef7eb",
+        ("living_room", "ref_val"): "6d7ffeca5c4baf91a3b003af7151b659c9582d7708144ea88712d511eeea1277",
+        ("living_room", "ref_test"): "d500c951a1f1d9b63477918722db839fc10302b3ffb9ab5856602f08a4c4e73e",
+        ("bedroom", "ref_val"): "ee584fcebf58ba11b13cc737093952572a2a9b7bf0aece570d7d950e19e2221d",
+        ("bedroom", "ref_test"): "200556d0db5a69bc7fb21ffd46cf6f529e68bbffb8cef27563dfd92fda589c8b",
+        ("bathroom", "ref_val"): "a06bc6dcf638e309a04e1a52fa4e2ed681f062aa7df5dd5ddd905a59721bdcf6",
+        ("bathroom", "ref_test"): "f3a1b99fd9c878ef75060a9498af566075aa83d13716f9fd6fdc6671315aad54",
+    }
+    for (room, split), digest in expected.items():
+        data = gzip.decompress(published_path("hoz22", split, room).read_bytes())
+        assert hashlib.sha256(data).hexdigest() == digest, (room, split)
+
+
+def test_published_target_ids_map_by_the_documented_rules(published):
+    # Layout level (no simulator): how every target id of the 8,000 published episodes matches.
+    # The lists name every instance of the type: one list per scene and type throughout.
+    lists = {}
+    for episodes in published.values():
+        for e in episodes:
+            assert lists.setdefault((e.scene, e.target_type), e.target_ids) == e.target_ids
+    reports = {name: map_episodes(episodes, max_start_distance=10.0) for name, episodes in published.items()}
+    total = {
+        k: sum(getattr(r, k) for r in reports.values())
+        for k in ("exact_ids", "nearest_ids", "moved_ids", "dropped_ids")
+    }
+    assert total == {"exact_ids": 8898, "nearest_ids": 4745, "moved_ids": 182, "dropped_ids": 279}
+    skipped = collections.Counter(r for report in reports.values() for r in report.causes().elements())
+    # Only the chairs AI2-THOR 5 removed from FloorPlan22, 24 and 25 have no counterpart.
+    assert skipped == {"no object of that type in the scene": 34}
 
 
 class ThorAgentState:
@@ -227,6 +328,53 @@ def test_mapping_against_built_scene_data(sample, floorplan425):
             "start pose not reachable",
             "no object of that type nearby",
         }
+
+
+def test_the_built_scene_decides_starts_and_unseeable_targets(floorplan425):
+    data = floorplan425
+    toilet = next(i for i in data.instance_ids if i.startswith("Toilet|"))
+    goal = data.goal_mask_for_instances(np.array([data.instance_ids.index(toilet)]))
+    # A position that does not see the toilet: cut it off (every MoveAhead from it fails).
+    positions = sorted({(float(x), float(z)) for x, z in zip(data.x, data.z, strict=True)})
+    at = {p: np.flatnonzero((data.x == p[0]) & (data.z == p[1])) for p in positions}
+    cut = next(p for p in positions if not goal[at[p]].any() and len(at[p]) == 16)
+    successors = data.successors.copy()
+    successors[at[cut], 0] = at[cut]
+    island = dataclasses.replace(data, successors=successors, _distance_cache={})
+    start = (*cut, 90, 0)
+    published = RawEpisode(0, "FloorPlan425", "Toilet", (toilet,), start)
+    report = map_episodes([published], scene_data=lambda name: island)
+    # The nearest pose with the same yaw and horizon from which the toilet can be reached.
+    (episode,) = report.episodes
+    assert episode.start != start and episode.start[2:] == (90, 0)
+    assert 0 < np.hypot(episode.start[0] - cut[0], episode.start[1] - cut[1]) <= 0.36
+    distance = island.distances_to(goal)[island.pose_index[pose_key(*episode.start)]]
+    assert episode.optimal_length == distance + 1 >= 1
+    assert (report.snapped_starts, report.exact_episodes, report.exact_ids) == (1, 0, 1)
+    # Where no other pose is within reach, the episode is listed as unreachable.
+    report = map_episodes([published], scene_data=lambda name: island, max_start_distance=0.1)
+    assert dict(report.skipped)[0].startswith(f"target not reachable from the start: ['{toilet}']")
+    # A start cut off with the toilet in sight moves to the connected part (the published versions'
+    # pose graphs had no islands).
+    seeing = next(p for p in positions if goal[at[p]].any() and len(at[p]) == 16)
+    successors = data.successors.copy()
+    successors[at[seeing], 0] = at[seeing]
+    island = dataclasses.replace(data, successors=successors, _distance_cache={})
+    on_island = RawEpisode(2, "FloorPlan425", "Toilet", (toilet,), (*seeing, 90, 0))
+    (episode,) = map_episodes([on_island], scene_data=lambda name: island).episodes
+    assert island.usable_poses[island.pose_index[pose_key(*episode.start)]]
+    assert not island.usable_poses[at[seeing]].any() and episode.start[:2] != seeing
+    # On the unmodified scene the published start stands: the published episode itself.
+    report = map_episodes([published], scene_data=lambda name: data)
+    assert report.episodes[0].start == start and report.exact_episodes == 1
+    # A target inside a closed cabinet of FloorPlan425 is seen from no pose.
+    spray = "SprayBottle|-01.38|+00.06|+02.77"
+    report = map_episodes(
+        [RawEpisode(1, "FloorPlan425", "SprayBottle", (spray,), start)], scene_data=lambda n: data
+    )
+    assert report.skipped == [
+        (1, f"target visible from no pose: ['{spray}'] in FloorPlan425, inside a closed receptacle")
+    ]
 
 
 def test_cli_import_then_export(sample, floorplan425, tmp_path, monkeypatch, capsys):

@@ -3,7 +3,9 @@ evaluation-set sampler under each protocol, and the pose-graph islands no episod
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from mapless.sim.build import build_scene_data
 from mapless.sim.cache import cache_path, fingerprint
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
+from mapless.sim.scene_data import pose_key
 from tests.scene_fixtures import grid_scene
 from tests.synthetic import box, square_room
 
@@ -153,3 +156,84 @@ def test_shipped_reference_sets_follow_the_protocol(split):
     lengths = np.array([e.optimal_length for e in episodes])
     assert lengths.min() == 1 and 0.02 < (lengths == 1).mean() < 0.2  # some starts see the target
     assert all(e.start[3] == 0 for e in episodes)
+
+
+# ------------------------------------------------------------- the published episodes (HOZ, 22 classes)
+
+#: Mapped episodes per room type of the shipped published sets (the mapping report, docs/interop.md).
+PUBLISHED_MAPPED = {
+    "ref_val": {"kitchen": 864, "living_room": 927, "bedroom": 937, "bathroom": 996},
+    "ref_test": {"kitchen": 922, "living_room": 1000, "bedroom": 959, "bathroom": 861},
+}
+
+
+def test_the_reference_protocol_reads_the_published_episodes():
+    assert REFERENCE.published == "hoz22" and STANDARD.published is None
+    assert evalsets.set_path("ref_test").name == "ref_test_hoz22.json.gz"
+    # Whatever targets the model was trained on: the published sets are the reference protocol's.
+    assert evalsets.set_path("ref_val", "savn").name == "ref_val_hoz22.json.gz"
+    assert evalsets.set_path("test").name == "test_mjolnir22.json.gz"
+    # The project's own sampled reference sets, by name; a path stays a path.
+    own = evalsets.set_path("ref_test", episodes_file="ref_test_mjolnir22")
+    assert own == evalsets.builtin_path("ref_test", "mjolnir22") and own.is_file()
+    assert evalsets.set_path("ref_test", episodes_file="x/ref_test_mjolnir22") == Path("x/ref_test_mjolnir22")
+    # No published set has layout-shift versions: those stay the model's target set's.
+    assert evalsets.set_path("ref_test", layouts="gen:3").name == "ref_test_gen3_mjolnir22.json.gz"
+
+
+@pytest.mark.parametrize("split", ["ref_val", "ref_test"])
+def test_the_shipped_published_sets_are_their_files_mapped(split):
+    from mapless.offline.episodes import map_episodes, read_episode_file
+
+    episodes, header = evalsets.load(evalsets.set_path(split), fingerprint(REFERENCE.sim(SimConfig())))
+    assert (header["split"], header["target_set"]) == (split, "hoz22")
+    rooms = [e.episode_id.split("/")[1] for e in episodes]
+    assert collections.Counter(rooms) == PUBLISHED_MAPPED[split]
+    assert rooms == sorted(rooms, key=ROOM_TYPES.index)  # room by room, each in its file's order
+    for room in ROOM_TYPES:
+        raw = read_episode_file(evalsets.published_path("hoz22", split, room))[0]
+        # The target ids do not depend on the simulator: the layout-level mapping gives the same.
+        layout = {
+            e.episode_id: e
+            for e in map_episodes(raw, max_start_distance=10.0, id_prefix=f"hoz22_{split[4:]}").episodes
+        }
+        mapped = [e for e in episodes if e.episode_id.split("/")[1] == room]
+        indices = [int(e.episode_id.rsplit("/", 1)[1]) for e in mapped]
+        assert indices == sorted(indices)
+        for e in mapped:
+            published = raw[int(e.episode_id.rsplit("/", 1)[1])]
+            assert e.target_ids == layout[e.episode_id].target_ids and e.optimal_length >= 1
+            assert e.start[2:] == published.start[2:]
+            assert np.hypot(e.start[0] - published.start[0], e.start[1] - published.start[1]) <= 0.36
+
+
+def test_the_published_sets_map_exactly_onto_a_built_scene():
+    # FloorPlan424 built here under the reference rule: mapping its published test episodes gives the
+    # shipped episodes, optimal lengths included.
+    from mapless.offline.episodes import map_episodes, read_episode_file
+    from mapless.scenes import load_scene
+
+    data = build_scene_data(load_scene("FloorPlan424"), REFERENCE.sim(SimConfig()))
+    raw = [
+        e
+        for e in read_episode_file(evalsets.published_path("hoz22", "ref_test", "bathroom"))[0]
+        if e.scene == "FloorPlan424"
+    ]
+    report = map_episodes(raw, scene_data=lambda name: data, id_prefix="hoz22_test")
+    shipped = [e for e in evalsets.load(evalsets.set_path("ref_test"))[0] if e.scene == "FloorPlan424"]
+    assert report.episodes == shipped and len(shipped) == report.total == 200
+    for e in shipped:
+        goal = data.goal_mask_for_instances(np.array([data.instance_ids.index(i) for i in e.target_ids]))
+        assert e.optimal_length == data.distances_to(goal)[data.pose_index[pose_key(*e.start)]] + 1
+
+
+def test_per_room_keeps_the_first_episodes_of_each_published_file():
+    from mapless.evaluate.selection import load_episodes
+
+    episodes = load_episodes("ref_test", per_room=250)
+    assert collections.Counter(e.episode_id.split("/")[1] for e in episodes) == dict.fromkeys(ROOM_TYPES, 250)
+    full = load_episodes("ref_test")
+    assert episodes == [
+        e for room in ROOM_TYPES for e in [f for f in full if f.episode_id.split("/")[1] == room][:250]
+    ]
+    assert len(full) == sum(PUBLISHED_MAPPED["ref_test"].values())

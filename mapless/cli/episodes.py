@@ -30,7 +30,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="val, test, paper (the standard and paper protocols, success within 1.0 m) and ref_val, "
         "ref_test (the reference protocol, 1.5 m); each is made under its protocol's success rule",
     )
-    make.add_argument("--target-set", default="mjolnir22")
+    make.add_argument(
+        "--target-set",
+        default="mjolnir22",
+        help="mjolnir22 or savn (sampled), or hoz22: the shipped published HOZ files mapped onto the "
+        "scenes (splits ref_val, ref_test; --per-room and --seed do not apply), with their mapping report",
+    )
     make.add_argument("--per-room", type=int, default=250)
     make.add_argument("--seed", type=seed_int, default=0)
     make.add_argument("--out", type=Path, default=Path("episodes"))
@@ -67,9 +72,15 @@ def _make(args: argparse.Namespace) -> int:
             raise MaplessError(f"no evaluation split {split!r}; choose from {evalsets.EVAL_SPLITS}")
         config = protocol_of_split(split).sim(base)
         library = libraries.setdefault(config, SceneLibrary.builtin(config, args.cache_dir))
-        episodes = evalsets.make_eval_set(
-            library, split, args.target_set, args.per_room, args.seed, layouts=args.layouts
-        )
+        if args.target_set in evalsets.PUBLISHED and not args.layouts:
+            from mapless.offline.episodes import mapping_table
+
+            episodes, reports = evalsets.map_published(library, split, args.target_set)
+            print(mapping_table(reports))
+        else:
+            episodes = evalsets.make_eval_set(
+                library, split, args.target_set, args.per_room, args.seed, layouts=args.layouts
+            )
         label = f"{split}_{evalsets.layouts_label(args.layouts)}" if args.layouts else split
         path = args.out / f"{label}_{args.target_set}.json.gz"
         evalsets.save(path, episodes, split, args.target_set, args.seed, fingerprint(config), args.layouts)

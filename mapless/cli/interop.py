@@ -4,8 +4,9 @@
   offline folders.
 * ``mapless thor scrape SCENES --out DIR``: offline folders scraped from a live AI2-THOR.
 * ``mapless interop check DIR``: load offline folders as training would and summarise them.
-* ``mapless interop episodes-import FILE.pkl``: map a published episode pickle onto the built-in
-  scenes, or onto an offline root's (a mapless episode file).
+* ``mapless interop episodes-import FILE.pkl...``: map published episode pickles onto the built-in
+  scenes, or onto an offline root's (a mapless episode file), with a mapping report per file and
+  cause; ``hoz22`` names the shipped published files (the reference protocol's sets).
 * ``mapless interop episodes-export SOURCE --format savn|mjolnir --out DIR``: our episode sets as
   evaluation pickles for the original code bases, one per room type.
 """
@@ -61,10 +62,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "episodes-import",
         _import_episodes,
         sim=True,
-        help="map a SAVN/MJOLNIR/HOZ episode pickle onto the built-in (or an offline root's) scenes",
+        help="map SAVN/MJOLNIR/HOZ episode pickles onto the built-in (or an offline root's) scenes",
+        description="Prints each file's mapping report and, for several files, a table of them (episodes "
+        "mapped, how targets and starts matched, skipped episodes per cause). FILE 'hoz22' stands for "
+        "the shipped published files, the reference protocol's sets: map them under its rule with "
+        "--sim visibility_distance=1.5.",
     )
-    imp.add_argument("file", type=Path)
-    imp.add_argument("--out", type=Path, help="mapless episode file to write (.json.gz)")
+    imp.add_argument("files", nargs="+", metavar="FILE", help="episode pickles (.pkl, .pkl.gz), or hoz22")
+    imp.add_argument(
+        "--out", type=Path, help="mapless episode file to write (.json.gz), every file's episodes"
+    )
     imp.add_argument("--max-target-distance", type=float, default=0.5, help="m, horizontal (default 0.5)")
     imp.add_argument("--max-start-distance", type=float, default=0.36, help="m (default 0.36)")
     imp.add_argument("--target-set", default="imported", help="label stored in the episode file")
@@ -204,7 +211,7 @@ def _check(args: argparse.Namespace) -> int:
 
 def _import_episodes(args: argparse.Namespace) -> int:
     from mapless.episodes import evalsets
-    from mapless.offline.episodes import import_episode_file
+    from mapless.offline.episodes import import_episode_file, mapping_table
     from mapless.scenes.catalogue import SPLITS
     from mapless.sim.cache import fingerprint
     from mapless.sim.library import SceneLibrary
@@ -214,25 +221,47 @@ def _import_episodes(args: argparse.Namespace) -> int:
         library = offline_library(args.offline_dir, config.category_set)
     else:
         library = SceneLibrary.builtin(config, args.cache_dir)
-    report = import_episode_file(
-        args.file,
-        scene_data=library.__getitem__,
-        max_target_distance=args.max_target_distance,
-        max_start_distance=args.max_start_distance,
-    )
-    print(f"{args.file}: {report.summary()}")
-    if args.show_skipped:
-        for index, reason in report.skipped:
-            print(f"  #{index}: {reason}")
+    files = [f for name in args.files for f in _episode_files(name)]
+    reports = {}
+    for file in files:
+        # One file keeps the plain prefix; several are told apart by their name (kitchen_val_22/...).
+        prefix = "import" if len(files) == 1 else file.name.split(".")[0]
+        report = import_episode_file(
+            file,
+            scene_data=library.__getitem__,
+            max_target_distance=args.max_target_distance,
+            max_start_distance=args.max_start_distance,
+            id_prefix=prefix,
+        )
+        reports[file.name] = report
+        print(f"{file}: {report.summary()}")
+        if args.show_skipped:
+            for index, reason in report.skipped:
+                print(f"  #{index}: {reason}")
+    if len(reports) > 1:
+        print(mapping_table(reports))
     if args.out is not None:
-        if not report.episodes:
-            raise MaplessError(f"{args.file}: no episode could be mapped; nothing written")
-        numbers = {int(e.scene.removeprefix("FloorPlan")) % 100 for e in report.episodes}
+        episodes = [e for report in reports.values() for e in report.episodes]
+        if not episodes:
+            raise MaplessError(f"{', '.join(args.files)}: no episode could be mapped; nothing written")
+        numbers = {int(e.scene.removeprefix("FloorPlan")) % 100 for e in episodes}
         # The file header names the scene range; pick the narrowest split holding every scene.
-        split = next(s for s in ("val", "test", "paper", "all") if numbers <= set(SPLITS[s]))
-        evalsets.save(args.out, report.episodes, split, args.target_set, 0, fingerprint(config))
-        print(f"wrote {args.out}: {report.mapped} episodes (split label {split})")
+        split = next(
+            s for s in ("val", "test", "ref_val", "ref_test", "paper", "all") if numbers <= set(SPLITS[s])
+        )
+        evalsets.save(args.out, episodes, split, args.target_set, 0, fingerprint(config))
+        print(f"wrote {args.out}: {len(episodes)} episodes (split label {split})")
     return 0
+
+
+def _episode_files(name: str) -> list[Path]:
+    """An episode file, or every shipped file of a published set (``hoz22``), room by room."""
+    from mapless.episodes.evalsets import PUBLISHED, published_path
+    from mapless.scenes.catalogue import ROOM_TYPES
+
+    if name not in PUBLISHED or Path(name).exists():
+        return [Path(name)]
+    return [published_path(name, split, room) for room in ROOM_TYPES for split in PUBLISHED[name][1]]
 
 
 def _glove_from_hdf5(path: Path) -> dict:

@@ -4,10 +4,12 @@ Per room type, ``per_room`` episodes: scene uniform over the split's scenes of t
 drawn over visible instances of the room's targets (as in training), start a uniform (position,
 yaw) at horizon 0 from which the target is reachable, in the scene's usable pose-graph component
 (``SceneData.usable_poses``). Under the ``standard`` and ``paper`` protocols the start must not already
-see the target; the ``reference`` protocol's sets (``ref_val``, ``ref_test``) allow it, as the
-references' published sets do. The optimal length (actions including ``Done``) is stored. The file
-records the simulator fingerprint it was made with; loading it under other simulator parameters is
-an error, since lengths would differ.
+see the target; the ``reference`` protocol's sampled sets (``ref_val``, ``ref_test``) allow it, as the
+references' published sets do. The reference protocol evaluates on published episodes instead
+(:data:`PUBLISHED`, :func:`set_path`): the shipped files mapped onto the built-in scenes
+(:func:`map_published`), stored like the sampled sets under the set name ``hoz22``. The optimal
+length (actions including ``Done``) is stored. The file records the simulator fingerprint it was
+made with; loading it under other simulator parameters is an error, since lengths would differ.
 
 Layout-shift sets (``layouts="gen:3"``: SOURCE:PER_SCENE) play the split's floor plans under other
 arrangements: after the floor plan, one more draw picks one of its first PER_SCENE variants from
@@ -23,7 +25,7 @@ import json
 import zlib
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,8 +37,17 @@ from mapless.scenes.categories import targets
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 
+if TYPE_CHECKING:
+    from mapless.offline.episodes import MappingReport
+
 FORMAT = "mapless-episodes/1"
 EVAL_SPLITS = ("val", "test", "paper", "ref_val", "ref_test")
+#: Published episode files the package ships (mapless/data/NOTICE.md), by set name: the file of a
+#: room type and split, and which of our splits each of their splits is. ``hoz22``: the HOZ line's
+#: 22-class val (odd x21-x29) and test (even x22-x30) files, the reference protocol's sets.
+PUBLISHED: dict[str, tuple[str, dict[str, str]]] = {
+    "hoz22": ("episodes/hoz22/{room}_{split}_22.pkl.gz", {"ref_val": "val", "ref_test": "test"}),
+}
 
 
 def make_eval_set(
@@ -48,6 +59,10 @@ def make_eval_set(
     room_types: tuple[str, ...] = ROOM_TYPES,
     layouts: str | None = None,
 ) -> list[Episode]:
+    if target_set in PUBLISHED:  # mapped, not sampled: per_room and seed do not apply
+        if layouts:
+            raise MaplessError(f"the published set {target_set} has no layout-shift version")
+        return map_published(library, split, target_set, room_types)[0]
     room_targets = targets(target_set)
     source, per_scene = parse_layouts(layouts) if layouts else (None, 0)
     protocol = protocol_of_split(split)
@@ -92,6 +107,35 @@ def make_eval_set(
             )
             made += 1
     return episodes
+
+
+def map_published(
+    library: SceneLibrary, split: str, name: str = "hoz22", room_types: tuple[str, ...] = ROOM_TYPES
+) -> tuple[list[Episode], dict[str, MappingReport]]:
+    """The shipped published episodes of ``split`` mapped onto ``library``'s scenes, room type by
+    room type in file order (``episode_id`` ``<name>_<their split>/<room>/<index in the file>``),
+    and each file's mapping report."""
+    from mapless.offline.episodes import import_episode_file
+
+    splits = PUBLISHED[name][1]
+    episodes: list[Episode] = []
+    reports: dict[str, MappingReport] = {}
+    for room in room_types:
+        path = published_path(name, split, room)
+        report = import_episode_file(
+            path, scene_data=library.__getitem__, id_prefix=f"{name}_{splits[split]}"
+        )
+        episodes += report.episodes
+        reports[path.name.removesuffix(".gz")] = report
+    return episodes, reports
+
+
+def published_path(name: str, split: str, room: str) -> Path:
+    """The shipped file of a published set's ``split`` (ours: ``ref_val``, ``ref_test``) and room type."""
+    template, splits = PUBLISHED[name]
+    if split not in splits:
+        raise MaplessError(f"the published set {name} has no {split} episodes; it has {list(splits)}")
+    return _data_path(template.format(room=room, split=splits[split]))
 
 
 def parse_layouts(layouts: str) -> tuple[str, int]:
@@ -178,8 +222,32 @@ def load(path: Path | str, expected_fingerprint: str | None = None) -> tuple[lis
     return episodes, header
 
 
+def set_path(
+    split: str,
+    target_set: str = "mjolnir22",
+    layouts: str | None = None,
+    episodes_file: str | Path | None = None,
+) -> Path:
+    """The episode file an evaluation of ``split`` reads: ``episodes_file`` (a path, or the name of
+    a shipped set, e.g. ``ref_test_mjolnir22``, the project's sampled reference test set); else the
+    published set of the split's protocol where it has one (reference: ``hoz22``), whatever the
+    model's ``target_set``; else the shipped set of ``target_set`` (with ``layouts``, its
+    layout-shift set, which no published set has)."""
+    if episodes_file is not None:
+        path = Path(episodes_file)
+        shipped = _data_path(f"episodes/{path.name}.json.gz")
+        named = not path.exists() and str(episodes_file) == path.name and shipped.is_file()
+        return shipped if named else path
+    published = None if layouts else protocol_of_split(split).published
+    return builtin_path(split, published or target_set, layouts)
+
+
+def _data_path(name: str) -> Path:
+    return Path(str(resources.files("mapless.data").joinpath(name)))
+
+
 def builtin_path(split: str, target_set: str = "mjolnir22", layouts: str | None = None) -> Path:
     if split not in EVAL_SPLITS:
         raise MaplessError(f"no built-in episode set for split {split!r}; choose one of {EVAL_SPLITS}")
     name = f"{split}_{layouts_label(layouts)}" if layouts else split
-    return Path(str(resources.files("mapless.data").joinpath(f"episodes/{name}_{target_set}.json.gz")))
+    return _data_path(f"episodes/{name}_{target_set}.json.gz")

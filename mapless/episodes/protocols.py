@@ -5,11 +5,15 @@
   never start with the target in view.
 * ``paper`` (what the paper and MJOLNIR did): the same rule and sets, but select *and* report on the
   same x21-x30 episodes, an optimistic estimate; every report made with it says so.
-* ``reference`` (what the SAVN/MJOLNIR published numbers were measured under): success within 1.5 m,
-  AI2-THOR's default ``visibilityDistance``, which the references' offline data follow; select on
-  the odd floor plans x21-x29 (``ref_val``), report once on the even ones x22-x30 (``ref_test``),
-  the split of SAVN's published pickles; the evaluation sets are sampled as the references sample
-  them, so a start may already see the target (6-8 % of the published sets' starts do).
+* ``reference`` (what the SAVN/MJOLNIR/HOZ published numbers were measured under): success within
+  1.5 m, AI2-THOR's default ``visibilityDistance``, which the references' offline data follow;
+  select on the odd floor plans x21-x29 (``ref_val``), report once on the even ones x22-x30
+  (``ref_test``), the split of the published pickles. Its sets are the published episodes
+  themselves: the HOZ line's 22-class val and test files (``hoz22``, shipped in the package and
+  mapped onto the built-in scenes, docs/interop.md), whatever targets the model was trained on; a
+  start may already see the target, as in the published files. The project's own sampled sets of
+  the same split and rule stay available as ``ref_val_<target set>`` / ``ref_test_<target set>``
+  (``mapless eval --episodes ref_test_mjolnir22``; training-time validation uses them).
 
 Training is the same under every protocol (x01-x20) except for the success rule, which also decides
 the reward and ``Done``: a run trained for the reference protocol uses ``visibility_distance`` 1.5.
@@ -28,8 +32,10 @@ from mapless.sim.config import SimConfig
 class Protocol:
     """select_split / report_split: evaluation-set splits (``mapless.scenes.catalogue.SPLITS``);
     equal when selection and report share their episodes. visible_starts: the protocol's evaluation
-    sets may start with the target already in view. No protocol's sets start on a pose-graph island
-    (``SceneData.usable_poses``)."""
+    sets may start with the target already in view. No protocol's sampled sets start on a pose-graph
+    island (``SceneData.usable_poses``). published: the shipped published episode set
+    (``mapless.episodes.evalsets.PUBLISHED``) that its sets are, whatever targets the model was
+    trained on; None: the sets sampled for the model's target set."""
 
     name: str
     select_split: str
@@ -37,6 +43,7 @@ class Protocol:
     visibility_distance: float
     visible_starts: bool
     label: str
+    published: str | None = None
 
     def sim(self, config: SimConfig) -> SimConfig:
         """``config`` with this protocol's success rule."""
@@ -55,8 +62,10 @@ PROTOCOLS: dict[str, Protocol] = {
     ),
     "reference": Protocol(
         "reference", "ref_val", "ref_test", 1.5, True,
-        "REFERENCE PROTOCOL (the SAVN/MJOLNIR data's): success within 1.5 m, selected on val (odd "
-        "x21-x29), reported once on test (even x22-x30), starts may see the target",
+        "REFERENCE PROTOCOL (the SAVN/MJOLNIR/HOZ data's): success within 1.5 m, selected on the "
+        "published HOZ 22-class val episodes (odd x21-x29), reported once on its test episodes (even "
+        "x22-x30), starts may see the target",
+        "hoz22",
     ),
 }  # fmt: skip
 

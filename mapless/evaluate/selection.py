@@ -37,15 +37,17 @@ def load_episodes(
     target_set: str = "mjolnir22",
     layouts: str | None = None,
 ) -> list[Episode]:
-    """The fixed episodes of ``split`` (built-in set of ``target_set`` unless ``episodes_file``; with
-    ``layouts`` the layout-shift set, made on the spot when not shipped),
-    keeping the first ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small
-    budgets evaluate a subset of the very episodes the full budget uses.
+    """The fixed episodes of ``split`` (:func:`mapless.episodes.evalsets.set_path`: ``episodes_file``,
+    else the protocol's published set, else the built-in set of ``target_set``; with ``layouts`` the
+    layout-shift set, made on the spot when not shipped), keeping the first ``per_room`` of each
+    room type in ``rooms``: a prefix of the full set, so small budgets evaluate a subset of the very
+    episodes the full budget uses (the published sets are in their files' order, which is shuffled:
+    HOZ evaluates the first 250 of each room type).
 
     With a built-in simulator ``library``, a file made under other simulator settings is refused: its
     shortest paths (SPL, the L>=5 split) and its "target not yet visible" starts would be wrong there.
     """
-    path = Path(episodes_file) if episodes_file else evalsets.builtin_path(split, target_set, layouts)
+    path = evalsets.set_path(split, target_set, layouts, episodes_file)
     if layouts and not episodes_file and not path.exists() and library is not None:
         # A layout-shift set not shipped: made here, as `mapless episodes make --layouts` makes it (its
         # first per_room episodes of each room type are those of the full set: each room draws alone).
