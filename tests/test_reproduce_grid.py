@@ -6,6 +6,7 @@ test_eval_reproduce's workspace."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -18,7 +19,7 @@ from test_eval_reproduce import workspace  # noqa: F401 - the fixture: three bui
 from mapless import checkpoint as ckpt
 from mapless.cli import main
 from mapless.experiments import SlurmLauncher, experiment_runs, load_experiment, reproduce
-from mapless.experiments.launch import default_jobs, in_use
+from mapless.experiments.launch import default_jobs, in_use, read_progress
 from mapless.provenance import cpu_cores
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
@@ -72,25 +73,46 @@ def test_runs_train_side_by_side_with_the_results_of_one_after_another(workspace
     assert side_by_side["models"][0]["episodes"] == in_turn["models"][0]["episodes"]
 
 
-def test_a_killed_grid_resumes_where_it_stopped(workspace, capsys):  # noqa: F811
-    root, _ = workspace
-    longer = ["--set", "train.episodes=96"]
-    command = _command(workspace, "killed", "--jobs", "2", *longer)
-    grid = subprocess.Popen([sys.executable, "-m", "mapless", *command], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)  # fmt: skip
-    config = load_experiment("table1", "smoke", Path(command[3]), ["models=[a3c]", "focus=a3c",
-                             f"runs_dir={root / 'killed'}", "train.episodes=96"], seeds=2)  # fmt: skip
-    runs = experiment_runs(config)
+def test_a_stopped_or_killed_grid_resumes_where_it_stopped(workspace, capsys):  # noqa: F811
+    root, path = workspace
+    budget = "train.episodes=96"
+    command = _command(workspace, "killed", "--jobs", "2", "--set", budget)
+    overrides = ["models=[a3c]", "focus=a3c", f"runs_dir={root / 'killed'}", budget]
+    runs = experiment_runs(load_experiment("table1", "smoke", path, overrides, seeds=2))
+
+    def start() -> subprocess.Popen:
+        argv = [sys.executable, "-m", "mapless", *command]
+        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def checkpointed(run) -> int:
+        file = run.run_dir / ckpt.CHECKPOINT_FILE
+        return ckpt.load_file(file)["counters"]["episodes"] if file.is_file() else 0
+
+    # Ctrl-C: passed on to each run in training, which checkpoints and ends; the grid says interrupted.
+    grid = start()
     try:
+        _wait_until(lambda: all(checkpointed(r) for r in runs), 600, "checkpoints")
+        grid.send_signal(signal.SIGINT)
+        assert grid.wait(timeout=600) == 130
+    finally:
+        grid.kill()
+    stopped = [checkpointed(r) for r in runs]
+    assert not any(r.finished for r in runs) and not any(in_use(r.run_dir) for r in runs)
+
+    # SIGKILL: the parent gets no chance to stop its runs; each sees it go, checkpoints and ends
+    # rather than train on as an orphan that holds its folder.
+    grid = start()
+    try:
+        progress = lambda r: (read_progress(r.run_dir) or {}).get("episodes", 0)  # noqa: E731
         _wait_until(
-            lambda: all((r.run_dir / ckpt.CHECKPOINT_FILE).is_file() for r in runs), 180, "checkpoints"
+            lambda: all(progress(r) > s for r, s in zip(runs, stopped, strict=True)), 600, "resumed runs"
         )
     finally:
-        grid.kill()  # SIGKILL: the parent gets no chance to stop its runs
+        grid.kill()
         grid.wait()
-    # Each run saw its parent go, checkpointed and ended: no orphan holds a folder.
-    _wait_until(lambda: not any(in_use(r.run_dir) for r in runs), 60, "run left its folder")
+    _wait_until(lambda: not any(in_use(r.run_dir) for r in runs), 300, "run left its folder")
     assert not all(r.finished for r in runs), "the runs ended before the kill; nothing to resume"
+
     assert main(command) == 0
     out = capsys.readouterr().out
     assert all(run.finished for run in runs)
@@ -115,7 +137,7 @@ def test_slurm_jobs_run_by_submitits_local_executor_are_collected_by_a_later_cal
     assert list(index) == [run.run_dir.name]
     assert "submitted job" in capsys.readouterr().out
     # The job is a process of its own, as a Slurm job would be: it trains the run by itself.
-    _wait_until(lambda: run.finished and not in_use(run.run_dir), 180, "finished job")
+    _wait_until(lambda: run.finished and not in_use(run.run_dir), 600, "finished job")
     job = submitit.LocalJob(folder, index[run.run_dir.name])
     assert job.result() == 1.0  # the share of the run it trained
     assert f"-> {run.run_dir}" in Path(job.paths.stdout).read_text()

@@ -150,9 +150,8 @@ def train_side_by_side(runs: Sequence[PlannedRun], jobs: int, log: Log) -> None:
         while waiting or active:
             while waiting and len(active) < jobs:
                 index, run = waiting.pop(0)
-                process = context.Process(
-                    target=_train_child, args=(run.with_threads(threads), run.run_dir, index, messages)
-                )
+                args = (run.with_threads(threads), run.run_dir, index, messages, os.getpid())
+                process = context.Process(target=_train_child, args=args)
                 process.start()
                 active[index] = process
                 display.start(run)
@@ -170,8 +169,10 @@ def train_side_by_side(runs: Sequence[PlannedRun], jobs: int, log: Log) -> None:
         for process in active.values():
             with contextlib.suppress(ProcessLookupError):
                 os.kill(process.pid, signal.SIGINT)
-        for process in active.values():
-            process.join()
+        # Read on while they stop: a child ends only once what it sent is out of its queue.
+        while any(process.is_alive() for process in active.values()):
+            _receive(messages, outcomes, display, timeout=0.5)
+        _receive(messages, outcomes, display, timeout=0)
         raise
     finally:
         display.close()
@@ -198,14 +199,15 @@ def _receive(messages: Any, outcomes: dict, display: GridDisplay, timeout: float
             outcomes[index] = (kind, text)
 
 
-def _train_child(config: Any, run_dir: Path, index: int, messages: Any) -> None:
-    """One run in a spawned process: its log lines and its outcome go back through ``messages``."""
+def _train_child(config: Any, run_dir: Path, index: int, messages: Any, parent: int) -> None:
+    """One run in a spawned process: its log lines and its outcome go back through ``messages``.
+    ``parent``: the grid's process id, as the grid knew it (it may be gone before this one starts)."""
     # A session of its own: the terminal's Ctrl-C goes to the parent only, which passes one on (two
     # would abort the run rather than checkpoint it).
     os.setsid()
     # Killed however, the parent leaves a run that checkpoints and ends, rather than an orphan that
     # holds its folder's lock and trains on what the next command would resume.
-    exit_with_parent(os.getppid(), signum=signal.SIGTERM)
+    exit_with_parent(parent, signum=signal.SIGTERM)
     try:
         train_run(config, run_dir, lambda line: messages.put(("log", index, line)))
         messages.put(("done", index, ""))

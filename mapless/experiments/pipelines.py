@@ -75,9 +75,8 @@ def table1_rows(config: ExperimentConfig) -> dict[str, Row]:
     return {model: Row(model) for model in config.models}
 
 
-def table1(config: ExperimentConfig, log: Callable[[str], None]) -> Table1:
+def table1(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Table1:
     """Every model of the config on the report episodes, and the focus model minus each other."""
-    ev = Evaluator(config, log)
     records, results = [], {}
     for model, row in table1_rows(config).items():
         log(f"{model}:")
@@ -104,9 +103,8 @@ def table2_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:
     }
 
 
-def table2(config: ExperimentConfig, log: Callable[[str], None]) -> Table2:
+def table2(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Table2:
     """One run per model and training room type, each tested on every room type."""
-    ev = Evaluator(config, log)
     rows = []
     for (model, room), row in table2_rows(config).items():
         log(f"{model}, {ROOM_ABBREV[room]}-single:")
@@ -132,9 +130,8 @@ def table3_rows(config: ExperimentConfig) -> dict[str | None, Row]:
     return rows
 
 
-def table3(config: ExperimentConfig, log: Callable[[str], None]) -> Table3:
+def table3(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Table3:
     """The focus model with every room's relationships, then without those of one room type."""
-    ev = Evaluator(config, log)
     records, full = [], None
     for name, row in table3_rows(config).items():
         label = config.focus if name is None else f"{ROOM_NAMES[name].replace(' ', '_')}_no_relationships"
@@ -162,11 +159,11 @@ def ablation_rows(config: ExperimentConfig) -> dict[str | None, Row]:
     return rows
 
 
-def ablation(config: ExperimentConfig, log: Callable[[str], None]) -> Ablation:
+def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Ablation:
     """The focus model, then each row of ``config.ablations``: trained with the row's overrides
     (its own runs), or the focus model's chosen snapshots evaluated without test-time adaptation;
     every row minus the focus model, paired over the same episodes and seeds."""
-    ev, trained = Evaluator(config, log), ablation_rows(config)
+    trained = ablation_rows(config)
     focus = config.focus
     log(f"{focus}:")
     full, full_meta = _model_results(config, ev, trained[None])
@@ -203,20 +200,20 @@ def _unadapted(
     return ev.on(ev.report_episodes, focus, cfg, chosen, cache, adapt=False)
 
 
-def figure3(config: ExperimentConfig, log: Callable[[str], None]) -> Figure3:
+def figure3(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Figure3:
     """Table 1's records, and each model's final ratio of exploration."""
-    table = table1(config, log)
+    table = table1(config, log, ev)
     ratios = {m: seed_estimates(per_seed)["exploration_ratio"] for m, per_seed in table.results.items()}
     return Figure3(table, ratios)
 
 
-def figures45(config: ExperimentConfig, log: Callable[[str], None]) -> Figures45:
+def figures45(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> Figures45:
     """Table 1's records, and the episodes of Figure 4 (the focus model succeeds where most others
     fail) and Figure 5 (a failure of the focus model), each as every model ran it on its first seed."""
     from mapless.evaluate.figures import pick_showcase
     from mapless.knowledge import parents_of
 
-    table = table1(config, log)
+    table = table1(config, log, ev)
     first_seed = {m: per_seed[0] for m, per_seed in table.results.items()}
     focus = config.focus if config.focus in first_seed else next(iter(first_seed))
     showcase, failure = pick_showcase(first_seed, focus)
@@ -272,14 +269,13 @@ def _shift_row(config: ExperimentConfig, ev: Evaluator, row: Row) -> tuple[dict[
     return out, meta
 
 
-def layout_shift(config: ExperimentConfig, log: Callable[[str], None]) -> LayoutShift:
+def layout_shift(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) -> LayoutShift:
     """Do agents find objects that have moved? Each model trained on the default arrangements (the
     paper's protocol: Table 1's run, reused when it exists) and on scene variants (``variant_layouts``),
     selected on the val episodes of the default arrangements, reported on the test floor plans under
     their default arrangements and under other ones (``eval.shift_layouts``, or ``eval.shift_file``).
     Paired intervals: each model's variants row minus its default row, and the focus model minus each
     other model on both sets (does the focus model's advantage grow or vanish when objects move?)."""
-    ev = Evaluator(config, log)
     results: dict[tuple[str, str], dict[str, PerSeed]] = {}
     records = []
     for (model, trained_on), row in layout_shift_rows(config).items():
@@ -334,7 +330,8 @@ def planned_runs(config: ExperimentConfig) -> dict[str, int]:
     return dict(Counter(run.model for run in experiment_runs(config)))
 
 
-PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None]], object]] = {
+#: Each experiment's pipeline: its records from its trained runs, evaluated by ``ev``.
+PIPELINES: dict[str, Callable[[ExperimentConfig, Callable[[str], None], Evaluator], object]] = {
     "table1": table1,
     "table2": table2,
     "table3": table3,
@@ -356,9 +353,11 @@ def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log
     suffix = "" if config.eval.protocol == "standard" else f"-{config.eval.protocol}"
     out = Path(reports_dir) / f"{config.experiment}{suffix}"
     start = time.perf_counter()
+    # The episode sets load and are checked before any training: a bad file fails now, not hours on.
+    ev = Evaluator(config, log)
     if not (launcher or LocalLauncher()).train(experiment_runs(config), log):
         return None
-    record = PIPELINES[config.experiment](config, log)
+    record = PIPELINES[config.experiment](config, log, ev)
     command = command or f"mapless reproduce {config.experiment} --budget {config.budget}"
     result = write_report(config.experiment, record, out, command)
     log(f"{config.experiment}: done in {time.perf_counter() - start:.0f} s; report in {out}")
