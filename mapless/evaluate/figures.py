@@ -82,7 +82,9 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
     if not any(points for *_, points in seeds):
         return False
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    models = len({label for _, label, _, _ in seeds})
+    legend_rows = 0 if models <= 4 else (models + 1) // 2  # many rows go below the curves
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4 + 0.3 * legend_rows), sharey=True)
     labelled = set()  # one legend entry per model, however many seeds
     for i, label, chosen, points in seeds:
         colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
@@ -103,9 +105,14 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
-    axes[0].legend()
     fig.suptitle("Validation success at every snapshot (ringed: the one selected and reported)")
-    fig.tight_layout()
+    if not legend_rows:
+        axes[0].legend()
+        fig.tight_layout()
+    else:
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=2, fontsize="small", frameon=False)
+        fig.tight_layout(rect=(0, 0.3 * legend_rows / (4 + 0.3 * legend_rows) + 0.02, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
