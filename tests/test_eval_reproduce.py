@@ -461,9 +461,11 @@ ablation_rows: [a_unadapted, c_no_parent]
         assert difference == pytest.approx(
             row["estimates"]["success"]["mean"] - focus["estimates"]["success"]["mean"]
         )
-    # Without adaptation the agent is another one: the episodes' lengths or outcomes differ somewhere.
-    lengths = lambda rec: [(e["length"], e["success"]) for e in rec["episodes"][0]]  # noqa: E731
-    assert lengths(unadapted) != lengths(focus)
+    # Row a is the focus model's chosen snapshot evaluated by an agent that never adapts.
+    chosen = Path(focus["runs"][0]["selection"]["chosen"])
+    assert unadapted["runs"][0]["model_file"] == str(chosen)
+    (cache,) = (chosen.parent.parent / "eval").glob("unadapted_*.json")
+    assert json.loads(cache.read_text())["key"]["spec"]["adapt"] is False
     md = (reports / "ablation" / "ablation.md").read_text()
     assert "Δ false Done" in md and "c_no_parent" in md and "z_unused" not in md
 
@@ -489,9 +491,10 @@ def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
     small, medium = load_experiment("ablation", "small"), load_experiment("ablation", "medium")
     assert medium.ablations == small.ablations and medium.budget == "medium"
     assert medium.train["max_seconds"] == 3600 and small.train["max_seconds"] == 900
-    # The focus model and six rows that train; row a only evaluates.
-    assert planned_runs(small) == {"cvmeta": 7}
-    assert planned_runs(load_experiment("ablation", "small", seeds=2)) == {"cvmeta": 14}
+    # Two seeds of the focus model and of rows d and f, one of the five rows with `seeds: 1`; row a
+    # only evaluates the focus model's runs.
+    assert planned_runs(small) == {"cvmeta": 2 + 2 + 2 + 5}
+    assert planned_runs(load_experiment("ablation", "small", seeds=3)) == {"cvmeta": 3 + 3 + 3 + 5}
 
 
 def test_selection_may_read_a_subset_while_the_report_reads_every_episode(workspace):
@@ -507,3 +510,21 @@ def test_selection_may_read_a_subset_while_the_report_reads_every_episode(worksp
     assert [e.start for e in ev.select_episodes] == [e.start for e in whole.select_episodes[:2]]
     with pytest.raises(ConfigError, match="select_per_room"):
         load_experiment("table1", "smoke", path=config, overrides=["eval.select_per_room=0"])
+
+
+def test_an_adaptive_checkpoint_evaluated_without_adaptation_acts_as_a_plain_policy(tmp_path):
+    from train_fixtures import tiny_config
+
+    from mapless import checkpoint as ckpt
+    from mapless.agent.evaluation import AdaptiveModelAgent, ModelAgent
+    from mapless.evaluate.runner import AgentSpec
+    from mapless.models import build_model
+
+    config = tiny_config("cvmeta")
+    path = tmp_path / "cvmeta.pt"
+    ckpt.atomic_save(
+        ckpt.model_payload(build_model(config.model).state_dict(), config, {"episodes": 1}), path
+    )
+    assert isinstance(AgentSpec(checkpoint=str(path)).build(2), AdaptiveModelAgent)
+    agent = AgentSpec(checkpoint=str(path), adapt=False).build(2)
+    assert isinstance(agent, ModelAgent) and not isinstance(agent, AdaptiveModelAgent)
