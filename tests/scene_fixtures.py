@@ -6,9 +6,10 @@ import math
 
 import numpy as np
 
+from mapless.actions import N_MOVEMENT_ACTIONS
 from mapless.offline.format import category_rows, context_from_boxes
 from mapless.scenes.categories import category_set
-from mapless.sim.scene_data import N_MOVEMENT_ACTIONS, SceneData
+from mapless.sim.scene_data import SceneData
 
 #: id, type; two Mugs (box attribution within a type), a DiningTable/CoffeeTable pair (v1 alias
 #: ``TableTop``), a Toaster, a never-visible Apple and a type outside the category set.

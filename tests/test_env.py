@@ -7,11 +7,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from mapless.actions import DONE
 from mapless.episodes import Episode
 from mapless.errors import MaplessError
 from mapless.sim.env import ENV_ID, NavEnv
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import DONE
 from mapless.sim.task import RewardConfig
 from mapless.sim.vector import BatchedNavEnv
 

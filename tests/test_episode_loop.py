@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from eval_fixtures import SCENES, fixture_episodes, fixture_library
 
+from mapless.actions import DONE, MOVE_AHEAD, ROTATE_LEFT
 from mapless.agent.episode_loop import EpisodeLoop
-from mapless.sim.scene_data import DONE, MOVE_AHEAD, ROTATE_LEFT
 from mapless.sim.vector import BatchedNavEnv
 
 

@@ -10,10 +10,10 @@ import pytest
 from offline_checks import assert_same_scene
 from scene_fixtures import grid_scene
 
+from mapless.actions import LOOK_DOWN, LOOK_UP, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT
 from mapless.errors import MaplessError
 from mapless.offline import OfflineFormatError, export_scene, load_offline_scene, scene_folder_name
 from mapless.offline.format import guess_next_keys
-from mapless.sim.scene_data import LOOK_DOWN, LOOK_UP, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT
 
 
 @pytest.fixture(scope="module")

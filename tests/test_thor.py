@@ -10,11 +10,11 @@ import pytest
 from offline_checks import assert_same_scene
 from thor_fake import OBJECTS, REACHABLE, FakeController
 
+from mapless.actions import MOVE_AHEAD, N_MOVEMENT_ACTIONS
 from mapless.errors import MaplessError
 from mapless.offline import load_offline_scene
 from mapless.offline.format import parse_pose_key
 from mapless.sim.config import SimConfig
-from mapless.sim.scene_data import MOVE_AHEAD, N_MOVEMENT_ACTIONS
 from mapless.thor import LiveThorScene, ThorConfig, make_controller, scrape, scrape_scene
 
 CONFIG = ThorConfig(SimConfig(visibility_distance=1.0))

@@ -13,8 +13,8 @@ import os
 import numpy as np
 import pytest
 
+from mapless.actions import N_MOVEMENT_ACTIONS
 from mapless.offline import load_offline_scene
-from mapless.sim.scene_data import N_MOVEMENT_ACTIONS
 
 pytestmark = pytest.mark.skipif(
     os.environ.get("MAPLESS_THOR") != "1",

@@ -10,12 +10,12 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from mapless.actions import DONE, N_MOVEMENT_ACTIONS, NUM_ACTIONS
 from mapless.agent.acting import AdaptingActor, PolicyMemory, observation_keys, step_at_precision
 from mapless.agent.precision import keep_compiled_kernels
 from mapless.agent.rollout_lstm import RolloutLstm
 from mapless.models.base import RecurrentNavModel
 from mapless.models.memo import InViewMemo
-from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS, NUM_ACTIONS
 from mapless.sim.vector import BatchedNavEnv, BatchStep
 
 

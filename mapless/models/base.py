@@ -19,6 +19,7 @@ from typing import ClassVar, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from mapless.actions import NUM_ACTIONS as NUM_ACTIONS  # the policy's width, for every model
 from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
 from mapless.models.initialisation import glorot_init, init_heads_and_lstm
@@ -26,7 +27,6 @@ from mapless.models.layers import lstm_step
 from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
-from mapless.sim.scene_data import NUM_ACTIONS as NUM_ACTIONS  # the policy's width, for every model
 
 GRID = 7  # the 7x7 feature map of docs/observations.md (ResNet-18 conv5 size)
 EMBED = 64  # SAVN's per-cell embedding width, reused by every model that follows its layout

@@ -18,9 +18,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from mapless.actions import LOOK_DOWN, LOOK_UP, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT
 from mapless.errors import MaplessError
 from mapless.sim.context import context_from_boxes  # noqa: F401 - re-exported for the reader
-from mapless.sim.scene_data import LOOK_DOWN, LOOK_UP, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT
 
 FORMATS: tuple[str, ...] = ("savn", "mjolnir")
 GRAPH_FILE = "graph.json"

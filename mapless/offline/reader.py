@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from mapless.actions import N_MOVEMENT_ACTIONS
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.offline.format import (
     BOXES_FILE,
@@ -44,7 +45,7 @@ from mapless.offline.format import (
     parse_pose_key,
 )
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import N_MOVEMENT_ACTIONS, SceneData, pose_key
+from mapless.sim.scene_data import SceneData, pose_key
 
 FEATURE_MODES = ("auto", "resnet", "none")
 UNATTRIBUTED = "unattributed"

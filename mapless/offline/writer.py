@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mapless import __version__
+from mapless.actions import ACTIONS, N_MOVEMENT_ACTIONS
 from mapless.errors import MaplessError
 from mapless.files import replacing, write_text
 from mapless.offline.format import (
@@ -47,7 +48,7 @@ from mapless.offline.format import (
     scene_folder_name,
 )
 from mapless.scenes.categories import V1_TO_V5
-from mapless.sim.scene_data import ACTIONS, N_MOVEMENT_ACTIONS, SceneData
+from mapless.sim.scene_data import SceneData
 
 #: AI2-THOR 5 type -> MJOLNIR v1 type name, for the renamed types that keep a v1 category.
 V5_TO_V1: dict[str, str] = {v5: v1 for v1, v5s in V1_TO_V5.items() for v5 in v5s}

@@ -6,13 +6,14 @@ import functools
 
 import numpy as np
 
+from mapless.actions import N_MOVEMENT_ACTIONS
 from mapless.scenes.categories import category_set
 from mapless.scenes.floor_plans import Scene
 from mapless.sim.config import SimConfig
 from mapless.sim.context import context_from_boxes
 from mapless.sim.raycast import FLOOR, WALL, Frame, RayCaster
 from mapless.sim.room import InteriorMask, obstacle_polygons, segment_hits_polygon
-from mapless.sim.scene_data import N_MOVEMENT_ACTIONS, SceneData
+from mapless.sim.scene_data import SceneData
 
 FEATURE_EXTRA_CHANNELS = 3  # floor, wall, depth
 MAX_FEATURE_DEPTH = 10.0  # m, depth channel saturates here

@@ -25,10 +25,11 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from mapless.actions import ACTIONS
 from mapless.errors import MaplessError
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import ACTIONS, SceneData
+from mapless.sim.scene_data import SceneData
 from mapless.sim.task import RewardConfig, TargetFields, resolve_target_fields
 from mapless.sim.vector import OBSERVATION_KEYS, BatchedNavEnv
 

@@ -15,10 +15,6 @@ import numpy as np
 
 from mapless.errors import MaplessError
 
-ACTIONS: tuple[str, ...] = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
-MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
-N_MOVEMENT_ACTIONS = 5
-NUM_ACTIONS = len(ACTIONS)
 #: A pose-graph component smaller than this share of the scene's largest is an island (SceneData.usable_poses).
 USABLE_COMPONENT_SHARE = 0.25
 

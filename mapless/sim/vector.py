@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapless.actions import DONE, N_MOVEMENT_ACTIONS
 from mapless.knowledge.parents import parent_reward
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS
 from mapless.sim.task import (
     RewardConfig,
     TargetFields,

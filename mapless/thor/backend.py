@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from mapless.actions import DONE, N_MOVEMENT_ACTIONS
 from mapless.errors import MaplessError
 from mapless.offline.format import (
     FEATURE_SIDE,
@@ -40,7 +41,7 @@ from mapless.offline.format import (
     scene_folder_name,
 )
 from mapless.sim.config import SimConfig
-from mapless.sim.scene_data import DONE, N_MOVEMENT_ACTIONS, SceneData, pose_key
+from mapless.sim.scene_data import SceneData, pose_key
 
 MAX_FEATURE_DEPTH = 10.0  # m, as in the geometric simulator's depth channel
 FEATURE_SCALE = 1.0 / 255.0
