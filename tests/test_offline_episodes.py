@@ -419,6 +419,45 @@ def test_cli_import_then_export(sample, floorplan425, tmp_path, monkeypatch, cap
     assert back[0].embedding.shape == (300,)
 
 
+def test_cli_reports_several_files_per_cause(sample, floorplan425, tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from mapless.cli import interop
+    from mapless.episodes import evalsets
+    from mapless.sim.library import SceneLibrary
+
+    entries = [e for e in pickle.loads(sample.read_bytes()) if e["scene"] == "FloorPlan425"]
+    first, second = tmp_path / "first.pkl", tmp_path / "second.pkl"
+    first.write_bytes(pickle.dumps(entries[:6]))
+    second.write_bytes(pickle.dumps([*entries[6:9], {**entries[0], "scene": "FloorPlan9999"}]))
+    monkeypatch.setattr(
+        SceneLibrary,
+        "builtin",
+        classmethod(lambda cls, config=None, cache_dir=None: cls(lambda n: floorplan425)),
+    )
+    parser = argparse.ArgumentParser()
+    interop.register(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "both.json.gz"
+    args = parser.parse_args(["interop", "episodes-import", str(first), str(second), "--out", str(out)])
+    assert args.func(args) == 0
+    table = capsys.readouterr().out.split("| set |", 1)[1].splitlines()
+    assert table[0].endswith("| skipped: unknown scene |")
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table[2:4]}
+    assert rows["first.pkl"].startswith("| first.pkl | 6 | 6 (100.0%) |") and rows["first.pkl"].endswith(
+        "| 0 |"
+    )
+    assert rows["second.pkl"].startswith("| second.pkl | 4 | 3 (75.0%) |") and rows["second.pkl"].endswith(
+        "| 1 |"
+    )
+    episodes, header = evalsets.load(out)
+    assert len(episodes) == 9 and header["split"] == "val"
+    assert {e.episode_id.split("/")[0] for e in episodes} == {"first", "second"}  # told apart by file
+    # 'hoz22' names the shipped published files, val and test of each room type.
+    files = interop._episode_files("hoz22")
+    assert [f.name for f in files[:2]] == ["kitchen_val_22.pkl.gz", "kitchen_test_22.pkl.gz"]
+    assert len(files) == 8 and all(f.is_file() for f in files)
+
+
 def test_import_onto_an_offline_root_keeps_its_object_ids(sample, floorplan425, tmp_path, capsys):
     import argparse
 
