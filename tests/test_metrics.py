@@ -277,6 +277,8 @@ def test_metric_declarations_are_checked():
     # A ratio of sums (failed actions / all actions) is not a mean over episodes: no bootstrap.
     with pytest.raises(ValueError, match="ratio of sums"):
         Metric("x", "x", "failed_actions", per="ep_length")
+    with pytest.raises(ValueError, match="needs an interval"):
+        Metric("x", "x", "reward", interval=False, compared=True)
     with pytest.raises(ValueError, match="no bootstrap interval"):
         difference_estimates([[ep(0, True, 4, 4)]], [[ep(0, True, 4, 4)]], ["failed_action_rate"])
     # The tables' column groups and what compare shows are the declarations' (in declaration order).

@@ -168,6 +168,8 @@ class Metric:
     def __post_init__(self) -> None:
         if self.per is not None and self.interval:
             raise ValueError(f"metric {self.name!r}: a ratio of sums has no bootstrap interval")
+        if self.compared and not self.interval:  # a paired difference is bootstrapped as an interval is
+            raise ValueError(f"metric {self.name!r}: compared, so it needs an interval")
 
     @property
     def scale(self) -> float:
