@@ -31,9 +31,12 @@ class ExperimentEval:
     """How runs are evaluated.
 
     protocol: ``standard`` (select on val, report on test), ``paper`` (select and report on x21-x30)
-        or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30; its
-        runs train under the 1.5 m rule too); mapless.episodes.protocols.
-    per_room: the first N episodes per room type of the fixed sets (250 = all of the built-in ones).
+        or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30, on
+        the published HOZ episodes; its runs train under the 1.5 m rule too);
+        mapless.episodes.protocols.
+    per_room: the first N episodes per room type of the fixed sets (250 = all of the sampled ones;
+        of the reference protocol's published sets, up to 1,000 per room type, the first 250 as HOZ
+        evaluates).
     select_per_room: the first N per room type of the selection set (None: ``per_room``); selection
         may read a subset while the report reads every episode.
     select: evaluate every checkpoint and select (False: the final model only).
