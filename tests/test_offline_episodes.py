@@ -74,19 +74,28 @@ def test_unmappable_episodes_are_listed():
         RawEpisode(1, "FloorPlan401", "Mug", ("Mug|+00.00|+00.00|+00.00",), (0.0, 0.0, 0, 0)),
         RawEpisode(2, "FloorPlan401", "ToiletPaper", ("ToiletPaper|+40.00|+00.00|+40.00",), (0.0, 0.0, 0, 0)),
         RawEpisode(3, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (0.0, 0.0, 10, 0)),
+        RawEpisode(4, "FloorPlan401", "Toilet", (), (0.0, 0.0, 0, 0)),
+        RawEpisode(5, "FloorPlan401", "Toilet", ("Toilet",), (0.0, 0.0, 0, 0)),
+        RawEpisode(6, "FloorPlan401", "Toilet", ("Toilet|+40.00|+00.00|+40.00",), (40.0, 40.0, 0, 0)),
     ]
     report = map_episodes(raw)
     reasons = dict(report.skipped)
-    assert report.mapped == 0 and len(reasons) == 4
+    assert report.mapped == 0 and len(reasons) == 7
     assert reasons[0].startswith("unknown scene")
     assert reasons[1].startswith("no object of that type in the scene")
     assert reasons[2].startswith("no object of that type nearby")
     assert reasons[3].startswith("start yaw not on the grid")
+    assert reasons[4] == "no target: task_data is empty"
+    assert reasons[5] == "target id without a position: 'Toilet'"
+    assert reasons[6] == "start pose not reachable: 40.00|40.00|0|0 in FloorPlan401"
     assert report.causes() == {
         "unknown scene": 1,
         "no object of that type in the scene": 1,
         "no object of that type nearby": 1,
         "start yaw not on the grid": 1,
+        "no target": 1,
+        "target id without a position": 1,
+        "start pose not reachable": 1,
     }
     assert set(report.causes()) <= set(SKIP_CAUSES)
 
@@ -367,13 +376,21 @@ def test_the_built_scene_decides_starts_and_unseeable_targets(floorplan425):
     # On the unmodified scene the published start stands: the published episode itself.
     report = map_episodes([published], scene_data=lambda name: data)
     assert report.episodes[0].start == start and report.exact_episodes == 1
-    # A target inside a closed cabinet of FloorPlan425 is seen from no pose.
-    spray = "SprayBottle|-01.38|+00.06|+02.77"
-    report = map_episodes(
-        [RawEpisode(1, "FloorPlan425", "SprayBottle", (spray,), start)], scene_data=lambda n: data
-    )
-    assert report.skipped == [
-        (1, f"target visible from no pose: ['{spray}'] in FloorPlan425, inside a closed receptacle")
+    # Targets no pose sees, and why: inside a closed cabinet, in no frame, or in view only too far.
+    spray, window = "SprayBottle|-01.38|+00.06|+02.77", "Window|-00.73|+01.67|-00.01"
+    unseen = [
+        RawEpisode(1, "FloorPlan425", "SprayBottle", (spray,), start),
+        RawEpisode(2, "FloorPlan425", "Window", (window,), start),
+    ]
+    hidden_toilet = data.view_visible & (data.view_instance != data.instance_ids.index(toilet))
+    far = dataclasses.replace(data, view_visible=hidden_toilet, _distance_cache={})
+    why = "target visible from no pose: ['{}'] in FloorPlan425, {}"
+    assert map_episodes(unseen, scene_data=lambda n: data).skipped == [
+        (1, why.format(spray, "inside a closed receptacle")),
+        (2, why.format(window, "in no pose's view (behind the simulator's walls or furniture)")),
+    ]
+    assert map_episodes([published], scene_data=lambda n: far).skipped == [
+        (0, why.format(toilet, "in view only farther than the success distance"))
     ]
 
 
