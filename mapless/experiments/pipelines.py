@@ -177,7 +177,7 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
             per_seed, meta, baseline = [], [], full
         if not row.test_time_adaptation:
             runs = meta or full_meta
-            per_seed = [_unadapted(config, ev, focus, name, row, run, 1 + s) for s, run in enumerate(runs)]
+            per_seed = [_unadapted(config, ev, focus, row, run, 1 + s) for s, run in enumerate(runs)]
             meta = [{"run_dir": run["run_dir"], "model_file": ev.chosen_model(Path(run["run_dir"]), run)}
                     for run in runs]  # fmt: skip
         rec = model_record(f"{focus}: {row.what}", per_seed, {"runs": meta, "row": name, "what": row.what})
@@ -190,9 +190,7 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
     return Ablation(_setting(config, ev), records)
 
 
-def _unadapted(
-    config: ExperimentConfig, ev: Evaluator, focus: str, name: str, row, run: dict, seed: int
-) -> list:
+def _unadapted(config: ExperimentConfig, ev: Evaluator, focus: str, row, run: dict, seed: int) -> list:
     """A run's chosen snapshot on the report episodes, never adapted at test time."""
     cfg = train_config(config, focus, seed=seed, extra=row.train or None)
     chosen = ev.chosen_model(Path(run["run_dir"]), run)

@@ -26,10 +26,6 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
         if not changes_training(train_cfg):
             section, key = path.split(".")
             del data[section][key]
-    if train_cfg.env.layouts == type(train_cfg.env.layouts)():
-        del data["env"]["layouts"]
-    if not train_cfg.model.semantic_map:
-        del data["model"]["semantic_map"]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
     return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
@@ -47,6 +43,8 @@ def _meta_learns_under_ppo(train_cfg) -> bool:
 #: ``section.key`` of the training-config keys added after runs were made, each with the rule that
 #: says whether it changes a run's training.
 _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
+    ("env.layouts", lambda c: c.env.layouts != type(c.env.layouts)()),
+    ("model.semantic_map", lambda c: c.model.semantic_map),
     ("ppo.bootstrap_time_limit", lambda c: c.ppo.bootstrap_time_limit and _meta_learns_under_ppo(c)),
     ("meta.navigation_loss", _meta_learns_under_ppo),
     ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
