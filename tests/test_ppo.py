@@ -385,3 +385,14 @@ def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_p
     grads = _gradients(trainer, segment, torch.randn_like(segment.values))
     assert all(grads[n] is None for n in trainer.model.learned_loss_parameter_names())
     assert grads["lstm.weight_ih"].abs().sum() > 0
+
+
+def test_a_minibatch_whose_every_step_is_in_the_interaction_phase_gives_no_nan() -> None:
+    """Episodes no longer than k under ``after_interaction``: nothing is in the loss, and advantage
+    normalisation over no step must not turn the gradient into NaN."""
+    trainer, segment = _adaptive_trainer(
+        "model.interaction_steps=9", "model.max_inner_updates=1", "meta.navigation_loss=after_interaction"
+    )
+    assert segment.mask.shape[0] <= 9
+    grads = _gradients(trainer, segment, torch.randn_like(segment.values))
+    assert all(g is None or bool(torch.isfinite(g).all()) for g in grads.values())

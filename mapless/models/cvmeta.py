@@ -126,9 +126,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         target = F.relu(target)
         described = {"context": context, "graph": graph, "target": target}
         if self.config.semantic_map:
-            described["map"] = self.dropout(F.relu(pointwise_conv(self.embed_map, obs["features"]))).flatten(
-                1
-            )
+            semantic_map = F.relu(pointwise_conv(self.embed_map, obs["features"]))
+            described["map"] = self.dropout(semantic_map).flatten(1)
         return described
 
     def encode(

@@ -24,7 +24,8 @@ policy that acted.
 With ``ppo.imitation_coef`` > 0 the loss also holds the cross-entropy to the simulator's
 shortest-path expert on the agent's own steps (an imitation warm start, annealed over
 ``ppo.imitation_frames``; off in the paper's protocol). While it is on, the learned loss φ takes no
-step (``meta.learned_loss_from_imitation``): what φ learns to imitate must exist at test time.
+step (``meta.learned_loss_from_imitation``): φ is meta-trained to stand in for the navigation loss,
+never for the expert's cross-entropy, which no test-time agent has.
 
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
 that acted with the same function under new parameters. The run folder, checkpoints, budget, logs
@@ -87,8 +88,10 @@ class PPOTrainer(BatchedTrainer):
             bootstrap_time_limit=cfg.ppo.bootstrap_time_limit,
         )
         self.inner = InnerLoop(self.model, first_order=cfg.meta.first_order) if adaptive else None
-        self._named_params = dict(self.model.named_parameters())
-        self._learned_loss_names = self.model.learned_loss_parameter_names() if adaptive else []
+        named = dict(self.model.named_parameters())
+        self._learned_loss_params = (
+            [named[n] for n in self.model.learned_loss_parameter_names()] if adaptive else []
+        )
         if resume is not None:
             self._restore(resume)
         else:
@@ -177,7 +180,7 @@ class PPOTrainer(BatchedTrainer):
             mask = mask.clone()
             mask[: self.model.config.interaction_steps] = 0
         advantage = advantages[:, columns]
-        if ppo.normalize_advantages:
+        if ppo.normalize_advantages and bool((mask > 0).any()):  # none: every step out of the loss
             valid = advantage[mask > 0]
             advantage = (advantage - valid.mean()) / (valid.std(unbiased=False) + 1e-8)
         with self.model.memoizing_in_view(InViewMemo(max_rows=None)):
@@ -221,8 +224,8 @@ class PPOTrainer(BatchedTrainer):
             if self._imitation > 0 and not self.config.meta.learned_loss_from_imitation:
                 # φ must learn to stand in for the navigation loss, not for the expert's
                 # cross-entropy, which does not exist at test time: no φ step in this update.
-                for name in self._learned_loss_names:
-                    self._named_params[name].grad = None
+                for param in self._learned_loss_params:
+                    param.grad = None
         return PPOLoss(*(t.detach() for t in loss))
 
     def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
