@@ -528,3 +528,12 @@ def test_an_adaptive_checkpoint_evaluated_without_adaptation_acts_as_a_plain_pol
     assert isinstance(AgentSpec(checkpoint=str(path)).build(2), AdaptiveModelAgent)
     agent = AgentSpec(checkpoint=str(path), adapt=False).build(2)
     assert isinstance(agent, ModelAgent) and not isinstance(agent, AdaptiveModelAgent)
+
+
+def test_the_paper_protocol_selects_and_reports_on_the_same_episodes_whatever_select_per_room(workspace):
+    from mapless.experiments.evaluator import Evaluator
+
+    _root, config = workspace
+    overrides = ["eval.select_per_room=2", "eval.protocol=paper", "eval.select_file=null"]
+    ev = Evaluator(load_experiment("table1", "smoke", path=config, overrides=overrides), print)
+    assert ev.select_episodes is ev.report_episodes and len(ev.report_episodes) == 6

@@ -38,7 +38,8 @@ class ExperimentEval:
         of the reference protocol's published sets, up to 1,000 per room type, the first 250 as HOZ
         evaluates).
     select_per_room: the first N per room type of the selection set (None: ``per_room``); selection
-        may read a subset while the report reads every episode.
+        may read a subset while the report reads every episode. The ``paper`` protocol, which selects
+        and reports on the same episodes, reads ``per_room`` for both.
     select: evaluate every checkpoint and select (False: the final model only).
     select_file / report_file: episode files replacing the built-in val / test sets (tests).
     shift_layouts: the layout-shift experiment's arrangements of the report split (SOURCE:PER_SCENE,

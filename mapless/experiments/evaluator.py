@@ -40,13 +40,15 @@ class Evaluator:
         self.scenes, target_set = experiment_scenes(self.config)
         self._untrained: dict[str, tuple[list[EpisodeResult], dict]] = {}
         sets = {"rooms": e.rooms, "library": self.scenes, "target_set": target_set}
-        select_per_room = e.select_per_room or e.per_room
+        # A protocol that selects and reports on the same episodes (paper) keeps them the same.
+        same_episodes = protocol.select_split == protocol.report_split
+        select_per_room = e.per_room if same_episodes else e.select_per_room or e.per_room
         self.select_episodes = load_episodes(
             protocol.select_split, e.select_file, per_room=select_per_room, **sets
         )
         self.report_episodes = (
             self.select_episodes
-            if protocol.select_split == protocol.report_split and select_per_room == e.per_room
+            if same_episodes
             else load_episodes(protocol.report_split, e.report_file, per_room=e.per_room, **sets)
         )
 
