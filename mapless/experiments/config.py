@@ -22,7 +22,7 @@ from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
 
 EXPERIMENTS = ("table1", "table2", "table3", "figure3", "figures45", "layout_shift", "ablation")
-BUDGETS = ("smoke", "small", "medium", "full")
+BUDGETS = ("smoke", "small", "medium", "long", "full")
 ROOM_ABBREV = {"kitchen": "K", "living_room": "L", "bedroom": "Be", "bathroom": "Ba"}
 
 
