@@ -411,6 +411,8 @@ def test_experiment_eval_settings_and_every_models_training_config_are_checked_o
 
     with pytest.raises(ConfigError, match=r"eval\.batch_size"):
         load_experiment("table1", "smoke", overrides=["eval.batch_size=0"])
+    with pytest.raises(ConfigError, match=r"eval\.within_minutes"):
+        load_experiment("table1", "smoke", overrides=["eval.within_minutes=[60, 0]"])
     # a3c is not the focus model: its block is checked all the same, before any run starts
     with pytest.raises(ConfigError, match=r"ppo\.minibatches"):
         load_experiment(
@@ -537,3 +539,20 @@ def test_the_paper_protocol_selects_and_reports_on_the_same_episodes_whatever_se
     overrides = ["eval.select_per_room=2", "eval.protocol=paper", "eval.select_file=null"]
     ev = Evaluator(load_experiment("table1", "smoke", path=config, overrides=overrides), print)
     assert ev.select_episodes is ev.report_episodes and len(ev.report_episodes) == 6
+
+
+def test_table1_within_minutes_chooses_each_run_again_among_its_early_snapshots(workspace):
+    root, config = workspace
+    reports = root / "reports_within"
+    args = ["--config", str(config), "--reports", str(reports), "--set", "eval.within_minutes=[10000]"]
+    assert main(["reproduce", "table1", *args]) == 0  # reuses the finished a3c run
+    payload = json.loads((reports / "table1" / "table1.json").read_text())
+    a3c = next(m for m in payload["models"] if m["model"] == "a3c")
+    (capped,) = payload["by_minutes"]["10000"]  # random does not train: not listed
+    assert capped["model"] == "a3c ≤ 10000 min" and capped["within_minutes"] == 10000
+    # Every snapshot is within so long a cap: the same choice, the same episodes.
+    assert capped["runs"][0]["selection"]["chosen"] == a3c["runs"][0]["selection"]["chosen"]
+    assert capped["episodes"] == a3c["episodes"]
+    md = (reports / "table1" / "table1.md").read_text()
+    assert "Chosen among the snapshots of the first 10000 minutes of training" in md
+    assert "| a3c ≤ 10000 min |" in md and "Chosen snapshots (per seed" in md

@@ -11,13 +11,19 @@ from eval_fixtures import fixture_episodes
 from train_fixtures import fixture_library as training_scenes
 from train_fixtures import tiny_config
 
-from mapless.checkpoint import training_clock
+from mapless.checkpoint import load_file, training_clock
 from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.figures import validation_figure
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
-from mapless.evaluate.selection import best_index, cached_evaluate, load_episodes
+from mapless.evaluate.selection import (
+    best_index,
+    cached_evaluate,
+    candidates,
+    load_episodes,
+    select_and_report,
+)
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
 from mapless.train.run import train
@@ -135,3 +141,26 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
     assert evaluated()
     cache.write_text(cache.read_text()[:100])  # torn by an older, non-atomic writer
     assert evaluated() and json.loads(cache.read_text())["episodes"]
+
+
+@pytest.mark.usefixtures("single_torch_thread")
+def test_selection_within_minutes_reads_only_the_snapshots_of_that_much_training(tmp_path):
+    run = tmp_path / "run"
+    train(tiny_config("a3c", "episodes=12"), run, library_factory=training_scenes)
+    frames = [int(load_file(path)["counters"]["frames"]) for _, path in candidates(run)]
+    assert len(frames) >= 3 and frames == sorted(frames)
+    # A log that dates the snapshots: each one a minute of training after the one before.
+    log = [{"frames": f, "perf/frames_per_s": (f - ([0, *frames][i])) / 60.0} for i, f in enumerate(frames)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
+    episodes, settings = fixture_episodes(per_scene=1), EvalSettings(batch_size=4, workers=1)
+    scenes = LibrarySpec(factory="eval_fixtures:fixture_library")
+
+    capped = select_and_report(run, episodes, episodes, settings, scenes, within_minutes=2.5)
+    assert [c["frames"] for c in capped.scores] == frames[:2]
+    assert [round(c["minutes"], 6) for c in capped.scores] == [1.0, 2.0]
+    assert capped.chosen in {c["path"] for c in capped.scores}
+    assert "first 2.5 training minutes" in capped.label
+    whole = select_and_report(run, episodes, episodes, settings, scenes)
+    assert [c["frames"] for c in whole.scores] == frames
+    with pytest.raises(MaplessError, match=r"no snapshot within its first 0\.5 training minutes"):
+        select_and_report(run, episodes, episodes, settings, scenes, within_minutes=0.5)

@@ -5,7 +5,7 @@ imitation warm start and every baseline's target_context, the layout-shift exper
 fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
 time-limit bootstrap; on 2026-12-06 the ablation experiment, ``eval.select_per_room`` and the move of
 the models' settings into experiments/recipes/laptop.yaml, which left every run folder where it was:
-tests/data/run_folders.json), and the composition rules."""
+tests/data/run_folders.json; then eval.within_minutes and the long budget), and the composition rules."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from mapless.models import MODELS
 
 DATA = Path(__file__).parent / "data"
 RESOLVED = json.loads((DATA / "experiment_configs_resolved.json").read_text())
-#: The run folder of seed 1 of every trained model (and ablation row) of the small and medium
+#: The run folder of seed 1 of every trained model (and ablation row) of the small, medium and long
 #: experiments under both protocols, captured 2026-12-06: a refactor of the configs must not move one.
 RUN_FOLDERS = json.loads((DATA / "run_folders.json").read_text())
 
@@ -107,7 +107,7 @@ def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path
 def _run_folders() -> dict[str, str]:
     folders = {}
     for experiment in ("table1", "table2", "table3", "layout_shift", "ablation"):
-        for budget in ("small", "medium"):
+        for budget in ("small", "medium", "long"):
             if not config_path(experiment, budget).is_file():
                 continue
             for protocol in ("standard", "reference"):

@@ -182,11 +182,14 @@ def select_and_report(
     protocol: str = "standard",
     progress: Callable[[str], None] | None = None,
     report_name: str | None = None,
+    within_minutes: float | None = None,
 ) -> Selection:
     """Evaluate every candidate of ``run_dir`` on ``select_episodes``, pick the best, and evaluate it
     once on ``report_episodes`` (``paper`` protocol: reuse the selection run on the same episodes).
     ``report_name`` names report episodes that are not the protocol's built-in set (an episode file)
-    in the label and the cache. Per-checkpoint results are cached under ``run_dir/eval/``."""
+    in the label and the cache. ``within_minutes``: only the snapshots of the first N minutes of
+    training (by the run's log), as if the run had stopped there. Per-checkpoint results are cached
+    under ``run_dir/eval/``."""
     if protocol not in PROTOCOLS:
         raise MaplessError(f"unknown protocol {protocol!r}; choose one of {list(PROTOCOLS)}")
     p = PROTOCOLS[protocol]
@@ -200,7 +203,16 @@ def select_and_report(
     run_dir = Path(run_dir)
     scores, runs = [], []
     clock = training_clock(run_dir)
-    for episodes_done, path in candidates(run_dir):
+    found = [(episodes, path, _training_progress(path, clock)) for episodes, path in candidates(run_dir)]
+    if within_minutes is not None:
+        found = [c for c in found if c[2]["minutes"] is not None and c[2]["minutes"] <= within_minutes]
+        if not found:
+            raise MaplessError(
+                f"run folder {run_dir} has no snapshot within its first {within_minutes:g} training "
+                "minutes (or no training log that dates them)"
+            )
+        label = f"{label}; chosen among the snapshots of the first {within_minutes:g} training minutes"
+    for episodes_done, path, progress_at in found:
         spec = AgentSpec(checkpoint=str(path))
         cache = run_dir / "eval" / f"{select_split}_{path.stem}.json"
         run = cached_evaluate(spec, select_episodes, settings, library, cache)
@@ -210,7 +222,7 @@ def select_and_report(
                 "episodes": episodes_done,
                 "path": str(path),
                 **{k: m[k] for k in main_metrics()},
-                **_training_progress(path, clock),
+                **progress_at,
             }
         )
         runs.append(run)
@@ -245,15 +257,18 @@ def evaluate_run(
     protocol: str = "standard",
     progress: Callable[[str], None] | None = None,
     report_name: str | None = None,
+    within_minutes: float | None = None,
 ) -> RunEvaluation:
     """How a trained run is evaluated, for ``mapless eval`` and the experiments alike. With
     ``select_episodes``: every checkpoint of the run folder ``path`` on them, the best once on
-    ``report_episodes`` (:func:`select_and_report`). Without: the run's final model, or the model
-    file ``path``, on ``report_episodes``."""
+    ``report_episodes`` (:func:`select_and_report`; ``within_minutes``: among the snapshots of the
+    first N training minutes). Without: the run's final model, or the model file ``path``, on
+    ``report_episodes``."""
     if select_episodes is not None:
         sel = select_and_report(
-            path, select_episodes, report_episodes, settings, library, protocol, progress, report_name
-        )
+            path, select_episodes, report_episodes, settings, library, protocol, progress, report_name,
+            within_minutes,
+        )  # fmt: skip
         return RunEvaluation(sel.report, sel.chosen, sel)
     from mapless.checkpoint import resolve_model_file
 

@@ -46,6 +46,8 @@ class ExperimentEval:
         mapless.episodes.evalsets; ``gen:3``: three generated arrangements per test floor plan).
     shift_file: an episode file replacing that set, e.g. one made on one's own arrangement files
         with ``mapless episodes make --splits test --layouts FILE:N``.
+    within_minutes: Table 1 also chooses each trained run among its snapshots of the first N
+        minutes of training, one table per N (the long budget: how the ranking moves with training).
     """
 
     protocol: Literal["standard", "paper", "reference"] = "standard"
@@ -61,8 +63,13 @@ class ExperimentEval:
     workers: int = 2
     seed: int = 0
     greedy: bool = False
+    within_minutes: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        if any(not isinstance(m, (int, float)) or m <= 0 for m in self.within_minutes):
+            raise ConfigError(
+                f"config key 'eval.within_minutes': minutes must be > 0, got {list(self.within_minutes)}"
+            )
         for key in ("per_room", "batch_size", "workers", "select_per_room"):
             value = getattr(self, key)
             if key == "select_per_room" and value is None:

@@ -109,13 +109,19 @@ class Evaluator:
             self._untrained[model] = (run.results, {"steps_per_second": run.steps_per_second})
         return self._untrained[model]
 
-    def trained(self, run_dir: Path, train_cfg) -> tuple[list[EpisodeResult], dict]:
-        """A trained run's report results: its checkpoint chosen on the selection episodes, or its
-        final model when the experiment does not select."""
+    def trained(
+        self, run_dir: Path, train_cfg, within_minutes: float | None = None
+    ) -> tuple[list[EpisodeResult], dict]:
+        """A trained run's report results: its checkpoint chosen on the selection episodes (among
+        those of its first ``within_minutes`` of training), or its final model when the experiment
+        does not select."""
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
         select = self.select_episodes if self.config.eval.select else None
         library, protocol = self.library(train_cfg), self.config.eval.protocol
-        done = evaluate_run(run_dir, self.report_episodes, settings, library, select, protocol, self.log)
+        done = evaluate_run(
+            run_dir, self.report_episodes, settings, library, select, protocol, self.log,
+            within_minutes=within_minutes,
+        )  # fmt: skip
         info: dict = {"steps_per_second": done.report.steps_per_second}
         if done.selection is not None:
             self.log(

@@ -53,14 +53,17 @@ class Row:
         ]
 
 
-def _model_results(config: ExperimentConfig, ev: Evaluator, row: Row) -> tuple[PerSeed, list[dict]]:
-    """Per-seed report results of one row (its trained runs, or ``random`` untrained)."""
+def _model_results(
+    config: ExperimentConfig, ev: Evaluator, row: Row, within_minutes: float | None = None
+) -> tuple[PerSeed, list[dict]]:
+    """Per-seed report results of one row (its trained runs, each chosen among its snapshots of
+    the first ``within_minutes`` of training if given, or ``random`` untrained)."""
     if row.model == "random":
         results, info = ev.untrained(row.model)
         return [results], [info]
     per_seed, meta = [], []
     for run in row.runs(config):
-        results, info = ev.trained(run.run_dir, run.config)
+        results, info = ev.trained(run.run_dir, run.config, within_minutes)
         per_seed.append(results)
         meta.append({"run_dir": str(run.run_dir), **info})
     return per_seed, meta
@@ -83,11 +86,29 @@ def table1(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) 
         per_seed, meta = _model_results(config, ev, row)
         records.append(model_record(model, per_seed, {"runs": meta, "protocol": config.eval.protocol}))
         results[model] = per_seed
-    if config.focus in results:
+    _focus_minus_each(config.focus, records, results)
+    by_minutes = {}
+    for minutes in config.eval.within_minutes:
+        log(f"chosen within the first {minutes:g} training minutes:")
+        capped, capped_results = [], {}
+        for model, row in table1_rows(config).items():
+            if model == "random":
+                continue
+            per_seed, meta = _model_results(config, ev, row, minutes)
+            meta_record = {"runs": meta, "protocol": config.eval.protocol, "within_minutes": minutes}
+            capped.append(model_record(f"{model} ≤ {minutes:g} min", per_seed, meta_record))
+            capped_results[f"{model} ≤ {minutes:g} min"] = per_seed
+        _focus_minus_each(f"{config.focus} ≤ {minutes:g} min", capped, capped_results)
+        by_minutes[minutes] = capped
+    return Table1(_setting(config, ev), records, results, by_minutes)
+
+
+def _focus_minus_each(focus: str, records: list[dict], results: dict[str, PerSeed]) -> None:
+    """Adds ``focus_minus_model`` to every record but the focus model's, if it is among them."""
+    if focus in results:
         for rec in records:
-            if rec["model"] != config.focus:
-                rec["focus_minus_model"] = difference_record(results[rec["model"]], results[config.focus])
-    return Table1(_setting(config, ev), records, results)
+            if rec["model"] != focus:
+                rec["focus_minus_model"] = difference_record(results[rec["model"]], results[focus])
 
 
 def table2_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:

@@ -6,7 +6,7 @@ room type, differences), the form the JSON reports keep."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import LibrarySpec
@@ -29,11 +29,14 @@ class Setting:
 @dataclass
 class Table1:
     """Every model of the config on the report episodes; ``focus_minus_model`` in each other
-    model's record when the focus model is among them."""
+    model's record when the focus model is among them. ``by_minutes``: the trained models again,
+    each run chosen among its snapshots of the first N training minutes (``eval.within_minutes``),
+    records labelled ``<model> ≤ <N> min``."""
 
     setting: Setting
     models: list[dict]
     results: dict[str, PerSeed]  # model -> its episodes, for the figures drawn from Table 1
+    by_minutes: dict[float, list[dict]] = field(default_factory=dict)
 
 
 @dataclass

@@ -72,10 +72,44 @@ def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered
     lines = _header(record.setting, "Table 1: navigation results on unseen scenes", command)
     lines += [model_table(records), "", *_focus_differences(record.setting.config.focus, records)]
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
+    lines += _by_minutes(record)
     lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     for rec in records:
         lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
-    return _payload(experiment, record.setting, models=records), lines
+    by_minutes = {f"{m:g}": capped for m, capped in record.by_minutes.items()}
+    extra = {"by_minutes": by_minutes} if by_minutes else {}
+    return _payload(experiment, record.setting, models=records, **extra), lines
+
+
+def _by_minutes(record: Table1) -> list[str]:
+    """Table 1 again per training-time cap: each run chosen among its snapshots of the first N
+    minutes, with when the chosen snapshots were taken."""
+    lines = []
+    for minutes, capped in record.by_minutes.items():
+        lines += [
+            f"Chosen among the snapshots of the first {minutes:g} minutes of training (by each run's "
+            "log), as if the runs had stopped there:",
+            "",
+            model_table(capped),
+            "",
+            *_focus_differences(f"{record.setting.config.focus} ≤ {minutes:g} min", capped),
+            "Chosen snapshots (per seed, training minutes / frames): "
+            + "; ".join(f"{rec['model']}: {_chosen_snapshots(rec)}" for rec in capped),
+            "",
+        ]
+    return lines
+
+
+def _chosen_snapshots(rec: dict) -> str:
+    cells = []
+    for run in rec.get("runs", []):
+        selection = run.get("selection")
+        if selection is None:
+            continue
+        chosen = next(c for c in selection["candidates"] if c["path"] == selection["chosen"])
+        minutes = "–" if chosen.get("minutes") is None else f"{chosen['minutes']:.0f} min"
+        cells.append(f"{minutes} / {chosen.get('frames', -1) / 1e6:.2f}M")
+    return ", ".join(cells) or "–"
 
 
 def _validation_curves(records: list[dict], path: Path) -> list[str]:
