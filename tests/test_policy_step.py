@@ -1,0 +1,274 @@
+"""The policy's forward variants against recorded values (issue 44, point 1): every variant of the
+recurrent step, on every registered model family, reproduces the outputs and parameter gradients
+that were recorded in tests/data/policy_step_golden.pt before the step moved into the model.
+
+Variants: the plain ``forward``; acting one step through a rollout's LSTM weight products (fp32, and
+bf16 in train mode with dropout); replaying a recorded segment time-batched; the meta-learning
+inner loop with per-episode fast weights (second order, first order, bf16) and test-time adaptation;
+the value alone. Everything runs in float64 except the bf16 variants, so a rounding-level change
+shows up at 1e-12; the bf16 ones round intermediates to 8 bits, so another CPU's kernels (another
+summation order) may move them by more.
+
+Re-record only on purpose (a change of arithmetic): ``python tests/test_policy_step.py --record``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+from functools import cache
+from pathlib import Path
+
+import pytest
+import torch
+
+from mapless.agent.acting import AdaptingActor
+from mapless.agent.meta import InnerLoop
+from mapless.agent.rollout_lstm import RolloutLstm
+from mapless.knowledge import synthetic_knowledge
+from mapless.models import build_model
+from mapless.models.base import NavModel
+from mapless.models.registry import MODELS
+from mapless.models.synthetic import synthetic_observations
+from mapless.train.a3c_loss import a3c_loss
+
+GOLDEN = Path(__file__).parent / "data" / "policy_step_golden.pt"
+RECURRENT = ["a3c", "sp", "savn", "gve", "spatt", "mjolnir_o", "mjolnir_r", "cvmeta", "mlp"]
+ADAPTIVE = ["savn", "gve", "spatt", "cvmeta", "cvmeta-all"]  # cvmeta-all: adapt: all
+#: models whose encoder does not read the recurrent state (PPO's segment replay needs that)
+REPLAYED = ["a3c", "sp", "mjolnir_o", "mjolnir_r", "mlp", "savn", "cvmeta-none"]
+STEPS, BATCH = 5, 3
+LENGTHS = (5, 3, 2)  # whole episodes of the fast-weight runs end at different steps
+#: (rtol, atol) per dtype of the recorded values
+#: (bf16 rounds intermediates to 8 bits: another CPU's kernels may move them by far more than fp64's).
+#: ``MAPLESS_POLICY_EXACT=1`` asks for bit-for-bit equality (on the machine that recorded).
+TOLERANCE = {torch.float64: (1e-10, 1e-12), torch.float32: (2e-2, 2e-3)}
+EXACT = os.environ.get("MAPLESS_POLICY_EXACT") == "1"
+
+
+def _model(name: str, dtype: torch.dtype = torch.float64, dropout: float = 0.0) -> NavModel:
+    torch.manual_seed(0)
+    family, _, adapt = name.partition("-")
+    model = build_model(
+        family,
+        knowledge=synthetic_knowledge(5, 300, seed=1),
+        hidden_size=16,
+        fusion_channels=2,
+        interaction_steps=2,
+        max_inner_updates=2,
+        inner_lr=0.05 if MODELS[family].is_adaptive() else None,
+        adapt=adapt or None,
+        dropout=dropout,
+    )
+    return model.to(dtype).eval()
+
+
+def _inputs(model: NavModel, dtype: torch.dtype, seed: int = 0):
+    """``STEPS`` observation batches, actions, rewards and a non-zero starting state."""
+    gen = torch.Generator().manual_seed(seed)
+    obs = []
+    for _ in range(STEPS):
+        o = synthetic_observations(BATCH, model.knowledge, model.feature_channels, generator=gen)
+        obs.append({k: (v.to(dtype) if v.is_floating_point() else v) for k, v in o.items()})
+    actions = torch.randint(0, 6, (STEPS, BATCH), generator=gen)
+    rewards = torch.randn(STEPS, BATCH, generator=gen, dtype=dtype)
+    hidden = tuple(0.5 * torch.randn(BATCH, model.hidden_size, generator=gen, dtype=dtype) for _ in range(2))
+    return obs, actions, rewards, hidden
+
+
+def _loss(logits: list[torch.Tensor], values: list[torch.Tensor], actions, rewards, mask=None):
+    mask = torch.ones_like(rewards) if mask is None else mask
+    stacked = torch.stack([v.reshape(-1) for v in values])
+    return a3c_loss(torch.stack(logits), stacked, actions, rewards, mask).total.sum()
+
+
+def _fingerprint(model: NavModel, grads: dict[str, torch.Tensor | None]) -> dict[str, torch.Tensor]:
+    """Per parameter gradient: its sum, a fixed random projection and its first entries (the full
+    gradients of the LSTM matrices would make the file megabytes)."""
+    out = {}
+    for name, g in grads.items():
+        if g is None:
+            continue
+        flat = g.detach().double().flatten()
+        gen = torch.Generator().manual_seed(len(name))
+        direction = torch.randn(flat.numel(), generator=gen, dtype=flat.dtype)
+        summary = torch.cat([flat.sum().view(1), (flat * direction).sum().view(1), flat[:8]])
+        out[f"grad.{name}"] = summary.to(g.dtype)
+    return out
+
+
+def _param_grads(model: NavModel) -> dict[str, torch.Tensor | None]:
+    return {n: p.grad for n, p in model.named_parameters() if p.requires_grad}
+
+
+def _outputs(prefix: str, logits, values, hidden=None) -> dict[str, torch.Tensor]:
+    out = {f"{prefix}.logits": torch.stack(logits).detach(), f"{prefix}.values": torch.stack(values).detach()}
+    if hidden is not None:
+        out[f"{prefix}.h"], out[f"{prefix}.c"] = (t.detach() for t in hidden)
+    return out
+
+
+# -- the variants, through today's entry points ---------------------------------------------------
+def run_forward(name: str) -> dict[str, torch.Tensor]:
+    """``model(obs, hidden, prev_policy)`` stepped through an episode, and the gradient of a loss."""
+    model = _model(name)
+    obs, actions, rewards, hidden = _inputs(model, torch.float64)
+    policy = torch.zeros(BATCH, 6, dtype=torch.float64)
+    logits, values = [], []
+    for t in range(STEPS):
+        out = model(obs[t], hidden, policy)
+        logits.append(out.logits)
+        values.append(out.value)
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+    result = _outputs("forward", logits, values, hidden)
+    if any(p.requires_grad for p in model.parameters()):
+        _loss(logits, values, actions, rewards).backward()
+        result |= _fingerprint(model, _param_grads(model))
+    return result
+
+
+def run_step(name: str, precision: str) -> dict[str, torch.Tensor]:
+    """One step at a precision through a recording :class:`RolloutLstm` (the A3C actor's and the
+    evaluator's step), gradients through its deferred weight gradient. bf16 runs in train mode, so
+    the dropout masks' draws are part of what must not change."""
+    from mapless.agent.acting import step_at_precision
+
+    bf16 = precision == "bf16"
+    dtype = torch.float32 if bf16 else torch.float64
+    model = _model(name, dtype, dropout=0.25 if bf16 else 0.0)
+    model.train(bf16)
+    obs, actions, rewards, hidden = _inputs(model, dtype)
+    lstm = RolloutLstm(model.lstm, dtype=torch.bfloat16 if bf16 else None)
+    policy = torch.zeros(BATCH, 6, dtype=dtype)
+    torch.manual_seed(1)
+    logits, values = [], []
+    for t in range(STEPS):
+        out = step_at_precision(model, lstm, obs[t], hidden, policy)
+        logits.append(out.logits)
+        values.append(out.value)
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+    params = dict((n, p) for n, p in model.named_parameters() if p.requires_grad)
+    grads = lstm.grad(_loss(logits, values, actions, rewards), list(params.values()))
+    return _outputs(f"step_{precision}", logits, values, hidden) | _fingerprint(
+        model, dict(zip(params, grads, strict=True))
+    )
+
+
+def run_replay(name: str) -> dict[str, torch.Tensor]:
+    """A recorded segment replayed time-batched, with episode starts inside it (PPO's update)."""
+    from mapless.agent.sequence import replay_segment
+
+    model = _model(name)
+    obs, actions, rewards, hidden = _inputs(model, torch.float64)
+    stacked = {k: torch.stack([o[k] for o in obs]) for k in obs[0]}
+    gen = torch.Generator().manual_seed(3)
+    prev_policy = torch.softmax(torch.randn(STEPS, BATCH, 6, generator=gen, dtype=torch.float64), -1)
+    starts = torch.zeros(STEPS, BATCH, dtype=torch.bool)
+    starts[2, 1] = starts[4, 0] = True
+    logits, values = replay_segment(model, stacked, prev_policy, starts, hidden)
+    _loss(list(logits), list(values), actions, rewards).backward()
+    return _outputs("replay", list(logits), list(values)) | _fingerprint(model, _param_grads(model))
+
+
+def run_fast(name: str, mode: str) -> dict[str, torch.Tensor]:
+    """Whole episodes through the meta-learning inner loop with per-episode fast weights, ended
+    episodes compacted away as PPO's replay does; the meta-gradient of an A3C loss."""
+    bf16 = mode == "bf16"
+    dtype = torch.float32 if bf16 else torch.float64
+    model = _model(name, dtype)
+    obs, actions, rewards, _ = _inputs(model, dtype)
+    loop = InnerLoop(model, first_order=mode == "first", dtype=torch.bfloat16 if bf16 else None)
+    mask = torch.stack([torch.arange(STEPS) < n for n in LENGTHS], dim=1).to(dtype)
+    state = loop.start(BATCH)
+    hidden = tuple(t.to(dtype) for t in model.initial_state(BATCH))
+    rows = torch.arange(BATCH)
+    policy = torch.zeros(BATCH, 6, dtype=dtype)
+    logits, values = [], []
+    for t in range(STEPS):
+        out = loop.forward(state, {k: v.index_select(0, rows) for k, v in obs[t].items()}, hidden, policy)
+        logits.append(out.logits.new_zeros(BATCH, 6).index_copy(0, rows, out.logits))
+        values.append(out.value.new_zeros(BATCH, 1).index_copy(0, rows, out.value))
+        alive = torch.tensor([t + 1 < LENGTHS[r] for r in rows.tolist()])
+        loop.observe(state, out, alive)
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+        if t + 1 < STEPS and not bool(alive.all()):
+            keep = alive.nonzero().squeeze(1)
+            loop.compact(state, keep)
+            rows = rows.index_select(0, keep)
+            hidden, policy = tuple(h.index_select(0, keep) for h in hidden), policy.index_select(0, keep)
+    loop.backward(state, _loss(logits, values, actions, rewards, mask))
+    return _outputs(f"fast_{mode}", logits, values) | _fingerprint(model, _param_grads(model))
+
+
+def run_test_time(name: str) -> dict[str, torch.Tensor]:
+    """Test-time adaptation: slots adapt in place, one slot restarts mid-way; the value alone of
+    the last state under the adapted weights."""
+    model = _model(name)
+    obs, _, _, _ = _inputs(model, torch.float64)
+    actor = AdaptingActor(model, BATCH)  # θ frozen while it acts
+    actor.reset_slots(torch.arange(BATCH))
+    hidden = tuple(t.double() for t in model.initial_state(BATCH))
+    policy = torch.zeros(BATCH, 6, dtype=torch.float64)
+    logits, values = [], []
+    for t in range(STEPS):
+        out = actor.forward(obs[t], hidden, policy)
+        logits.append(out.logits)
+        values.append(out.value)
+        actor.observe(out, torch.ones(BATCH, dtype=torch.bool))
+        hidden, policy = out.hidden, torch.softmax(out.logits, -1)
+        if t == 3:  # at a k-step boundary, as the evaluator starts episodes
+            actor.reset_slots(torch.tensor([1]))
+    last = actor.value(obs[0], hidden, policy)
+    actor.close()
+    return _outputs("test_time", logits, values) | {"test_time.last_value": last.detach()}
+
+
+def run_value(name: str) -> dict[str, torch.Tensor]:
+    """The value alone of a state (a truncation's bootstrap), without a graph."""
+    model = _model(name)
+    obs, _, _, hidden = _inputs(model, torch.float64)
+    policy = torch.softmax(torch.arange(6, dtype=torch.float64).expand(BATCH, 6), -1)
+    with torch.no_grad():
+        return {"value": model(obs[1], hidden, policy).value.reshape(-1)}
+
+
+CASES: dict[str, Callable[[], dict[str, torch.Tensor]]] = {
+    **{f"forward/{m}": (lambda m=m: run_forward(m)) for m in ["random", *RECURRENT]},
+    **{f"step_fp32/{m}": (lambda m=m: run_step(m, "fp32")) for m in RECURRENT},
+    **{f"step_bf16/{m}": (lambda m=m: run_step(m, "bf16")) for m in RECURRENT},
+    **{f"replay/{m}": (lambda m=m: run_replay(m)) for m in REPLAYED},
+    **{f"fast_{o}/{m}": (lambda m=m, o=o: run_fast(m, o)) for o in ("second", "first") for m in ADAPTIVE},
+    **{f"fast_bf16/{m}": (lambda m=m: run_fast(m, "bf16")) for m in ("savn", "cvmeta")},
+    **{f"test_time/{m}": (lambda m=m: run_test_time(m)) for m in ADAPTIVE},
+    **{f"value/{m}": (lambda m=m: run_value(m)) for m in RECURRENT},
+}
+
+
+def record() -> None:
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.save({case: run() for case, run in CASES.items()}, GOLDEN)
+    finally:
+        torch.set_num_threads(previous)
+
+
+@cache
+def _golden() -> dict[str, dict[str, torch.Tensor]]:
+    return torch.load(GOLDEN)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_variant_reproduces_the_recorded_outputs_and_gradients(case: str, single_torch_thread) -> None:
+    expected = _golden()[case]
+    got = CASES[case]()
+    assert sorted(got) == sorted(expected)
+    for key, value in expected.items():
+        exact = EXACT or not value.is_floating_point()
+        rtol, atol = (0.0, 0.0) if exact else TOLERANCE[value.dtype]
+        torch.testing.assert_close(got[key], value, rtol=rtol, atol=atol, msg=lambda m, k=key: f"{k}: {m}")
+
+
+if __name__ == "__main__" and "--record" in sys.argv:
+    record()
