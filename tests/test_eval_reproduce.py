@@ -468,8 +468,14 @@ ablation_rows: [a_unadapted, c_no_parent]
     assert unadapted["runs"][0]["model_file"] == str(chosen)
     (cache,) = (chosen.parent.parent / "eval").glob("unadapted_*.json")
     assert json.loads(cache.read_text())["key"]["spec"]["adapt"] is False
+    # How much adapting changes the agent: the share of episodes with every action equal.
+    pairs = zip(focus["episodes"][0], unadapted["episodes"][0], strict=True)
+    same = [a["actions"] == b["actions"] for a, b in pairs]
+    assert unadapted["same_actions"] == [pytest.approx(sum(same) / len(same))]
+    assert "same_actions" not in no_parent  # other runs: a different agent, not a measure of adapting
     md = (reports / "ablation" / "ablation.md").read_text()
     assert "Δ false Done" in md and "c_no_parent" in md and "z_unused" not in md
+    assert "Row a_unadapted acts exactly as cvmeta (the same snapshots and action draws" in md
 
 
 def test_an_ablation_row_that_changes_nothing_or_names_no_row_is_refused(tmp_path):

@@ -202,6 +202,8 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
             meta = [{"run_dir": run["run_dir"], "model_file": ev.chosen_model(Path(run["run_dir"]), run)}
                     for run in runs]  # fmt: skip
         rec = model_record(f"{focus}: {row.what}", per_seed, {"runs": meta, "row": name, "what": row.what})
+        if not row.train:  # the same snapshots and action draws, adapted or not: how much adapting changes
+            rec["same_actions"] = [_same_actions(a, b) for a, b in zip(full, per_seed, strict=True)]
         # Paired over the focus model's seeds of the same numbers (a one-seed row: the first seed),
         # for the metrics the report's difference table shows (false Done too).
         rec["minus_focus"] = difference_record(
@@ -209,6 +211,11 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
         )
         records.append(rec)
     return Ablation(_setting(config, ev), records)
+
+
+def _same_actions(a: list, b: list) -> float:
+    """The share of episodes in which two agents took exactly the same actions."""
+    return sum(x.actions == y.actions for x, y in zip(a, b, strict=True)) / len(a)
 
 
 def _unadapted(config: ExperimentConfig, ev: Evaluator, focus: str, row, run: dict, seed: int) -> list:

@@ -230,6 +230,15 @@ def ablation(experiment: str, record: Ablation, out: Path, command: str) -> Rend
         markdown(["row", "change", *headers(compared, "Δ ")], differences),
         "",
     ]
+    for rec in records:
+        if "same_actions" in rec:
+            shares = ", ".join(f"{100 * share:.1f} %" for share in rec["same_actions"])
+            lines += [
+                f"Row {rec['row']} acts exactly as {focus} (the same snapshots and action draws, "
+                f"every action equal) in {shares} of the episodes (per seed): how much test-time "
+                "adaptation changes what the agent does.",
+                "",
+            ]
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
     lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     return _payload(experiment, record.setting, models=records), lines
