@@ -538,6 +538,27 @@ def test_an_adaptive_checkpoint_evaluated_without_adaptation_acts_as_a_plain_pol
     assert isinstance(agent, ModelAgent) and not isinstance(agent, AdaptiveModelAgent)
 
 
+def test_an_adaptive_checkpoint_adapts_at_a_test_time_inner_rate_when_given_one(tmp_path):
+    from train_fixtures import tiny_config
+
+    from mapless import checkpoint as ckpt
+    from mapless.errors import MaplessError
+    from mapless.evaluate.runner import AgentSpec
+    from mapless.models import build_model
+
+    paths = {}
+    for name in ("cvmeta", "a3c"):
+        config = tiny_config(name)
+        paths[name] = tmp_path / f"{name}.pt"
+        ckpt.atomic_save(
+            ckpt.model_payload(build_model(config.model).state_dict(), config, {"episodes": 1}), paths[name]
+        )
+    assert AgentSpec(checkpoint=str(paths["cvmeta"])).build(2).adapter.loop.inner_lr == 1e-3  # the paper's
+    assert AgentSpec(checkpoint=str(paths["cvmeta"]), inner_lr=0.05).build(2).adapter.loop.inner_lr == 0.05
+    with pytest.raises(MaplessError, match="needs an adaptive model"):
+        AgentSpec(checkpoint=str(paths["a3c"]), inner_lr=0.05).build(2)
+
+
 def test_the_paper_protocol_selects_and_reports_on_the_same_episodes_whatever_select_per_room(workspace):
     from mapless.experiments.evaluator import Evaluator
 

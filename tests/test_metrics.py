@@ -229,6 +229,27 @@ def test_compare_prints_b_minus_a_paired_on_the_same_episodes(tmp_path, capsys):
     assert (
         false_a.startswith("25.0 [") and false_b.startswith("0.0 ± 0.0") and false_diff.startswith("-25.0 [")
     )
+    assert "same actions" not in out  # these results carry no actions
+
+
+def test_compare_counts_the_episodes_in_which_both_took_the_same_actions(tmp_path, capsys):
+    def acted(result: EpisodeResult, actions: tuple[int, ...]) -> EpisodeResult:
+        return dataclasses.replace(result, actions=actions)
+
+    a = [
+        acted(ep(0, True, 2, 2), (0, 5)),
+        acted(ep(1, False, 3, 2), (0, 1, 5)),
+        acted(ep(2, True, 1, 1), (5,)),
+    ]
+    b = [
+        acted(ep(0, True, 2, 2), (0, 5)),
+        acted(ep(1, True, 3, 2), (0, 2, 5)),
+        acted(ep(2, True, 1, 1), (5,)),
+    ]
+    for name, results in (("a", a), ("b", b)):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"episodes": [r.to_dict() for r in results]}))
+    assert main(["compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    assert "A and B took exactly the same actions in 2 of 3 episodes (66.7 %)." in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(

@@ -237,7 +237,16 @@ def comparison_table(
         ]
         for k in compared
     ]
-    return markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
+    table = markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
+    seeds = zip(per_seed_a, per_seed_b, strict=False)  # the seeds both sides have, as paired above
+    pairs = [pair for seed_a, seed_b in seeds for pair in zip(seed_a, seed_b, strict=True)]
+    if not all(x.actions and y.actions for x, y in pairs):  # results recorded without their actions
+        return table
+    same = sum(x.actions == y.actions for x, y in pairs)
+    # Under the same action draws (the evaluator's per-episode uniforms), equal actions mean policies
+    # too close to part: e.g. a model adapted at test time against its unadapted θ_0.
+    share = f"{same} of {len(pairs)} episodes ({100 * same / len(pairs):.1f} %)"
+    return f"{table}\n\nA and B took exactly the same actions in {share}."
 
 
 def write_report_files(payload: dict, text: str, stem: Path) -> tuple[dict, str]:

@@ -21,6 +21,7 @@ How it runs:
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import threading
@@ -36,6 +37,7 @@ import numpy as np
 from mapless.agent.acting import sample_actions
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, OracleAgent
+from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.offline import offline_library
 from mapless.scenes.catalogue import room_type_of
@@ -53,7 +55,9 @@ class AgentSpec:
     """How a worker builds its agent: ``oracle``; a registered model (``model`` = ModelConfig fields,
     weights from ``checkpoint`` or fresh with ``init_seed``); or ``factory`` = ``"module:function"``
     called as ``function(batch_size, bf16)``. ``adapt``: an adaptive model's test-time adaptation;
-    False runs its trained θ_0 as a plain recurrent policy (the cvmeta ablation's row a)."""
+    False runs its trained θ_0 as a plain recurrent policy (the cvmeta ablation's row a).
+    ``inner_lr``: an adaptive model's test-time inner learning rate instead of its trained one (how
+    far adaptation moves the policy; docs/learning.md)."""
 
     kind: str = "model"
     model: dict = field(default_factory=dict)
@@ -61,6 +65,7 @@ class AgentSpec:
     init_seed: int = 0
     factory: str | None = None
     adapt: bool = True
+    inner_lr: float | None = None
 
     @property
     def label(self) -> str:
@@ -90,9 +95,18 @@ def load_model(spec: AgentSpec):
     if spec.checkpoint is not None:
         from mapless.checkpoint import load_model as load_trained
 
-        return load_trained(spec.checkpoint)[0]
-    torch.manual_seed(spec.init_seed)
-    return build_model(from_dict(ModelConfig, spec.model))
+        model = load_trained(spec.checkpoint)[0]
+    else:
+        torch.manual_seed(spec.init_seed)
+        model = build_model(from_dict(ModelConfig, spec.model))
+    if spec.inner_lr is not None:
+        if not model.adaptive or spec.inner_lr <= 0:
+            raise MaplessError(
+                f"a test-time inner learning rate needs an adaptive model and a rate > 0; got "
+                f"{spec.inner_lr} for {type(model).__name__} (adaptive: {model.adaptive})"
+            )
+        model.config = dataclasses.replace(model.config, inner_lr=spec.inner_lr)
+    return model
 
 
 @dataclass(frozen=True)

@@ -151,6 +151,8 @@ def cached_evaluate(
     spec_key = asdict(spec)
     if spec.adapt:  # added later: keyed only when off, so earlier caches still hit
         del spec_key["adapt"]
+    if spec.inner_lr is None:  # likewise: keyed only when set
+        del spec_key["inner_lr"]
     key = {"spec": spec_key, "episodes": episodes_digest(episodes), "settings": settings_key}
     if spec.checkpoint:  # a resumed run rewrites final_model.pt under the same name
         stat = Path(spec.checkpoint).stat()
