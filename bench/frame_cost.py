@@ -5,7 +5,7 @@ for adaptive models) and then, model by model in turns (this machine's speed dri
 
 * acting: frames/s of the collection (forward passes without gradient, memo on);
 * update: frame-passes/s of one PPO minibatch's replay, forward + backward (segments through
-  ``replay_segment``; adaptive models through the meta-learning inner loop);
+  ``model.replay``; adaptive models through the meta-learning inner loop);
 * PPO: the frames/s a run reaches from those two, ``1 / (1/acting + epochs/update)``;
 * the split of a non-adaptive replay's forward (``encoder`` incl. ``graph``, ``lstm``, ``heads``)
   from the profiler's labels.
@@ -89,7 +89,6 @@ def forward_split(trainer, segment) -> dict[str, float]:
     """Milliseconds of the labelled parts of one non-adaptive replay's forward pass."""
     from torch.profiler import ProfilerActivity, profile
 
-    from mapless.agent.sequence import replay_segment
     from mapless.models.memo import InViewMemo
 
     if trainer.inner is not None:
@@ -97,7 +96,7 @@ def forward_split(trainer, segment) -> dict[str, float]:
     columns = torch.arange(segment.mask.shape[1] // trainer.config.ppo.minibatches)
     memo = trainer.model.memoizing_in_view(InViewMemo(max_rows=None))
     with profile(activities=[ProfilerActivity.CPU]) as prof, torch.no_grad(), memo:
-        replay_segment(trainer.model, {k: v[:, columns] for k, v in segment.obs.items()},
+        trainer.model.replay({k: v[:, columns] for k, v in segment.obs.items()},
                            segment.prev_policy[:, columns], segment.starts[:, columns],
                            tuple(t[columns] for t in segment.hidden))  # fmt: skip
     totals = {

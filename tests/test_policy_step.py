@@ -42,9 +42,9 @@ STEPS, BATCH = 5, 3
 LENGTHS = (5, 3, 2)  # whole episodes of the fast-weight runs end at different steps
 #: (rtol, atol) per dtype of the recorded values
 #: (bf16 rounds intermediates to 8 bits: another CPU's kernels may move them by far more than fp64's).
-#: ``MAPLESS_POLICY_EXACT=1`` asks for bit-for-bit equality (on the machine that recorded).
+#: ``MAPLESS_GOLDEN_EXACT=1`` asks for bit-for-bit equality (on the machine that recorded).
 TOLERANCE = {torch.float64: (1e-10, 1e-12), torch.float32: (2e-2, 2e-3)}
-EXACT = os.environ.get("MAPLESS_POLICY_EXACT") == "1"
+EXACT = os.environ.get("MAPLESS_GOLDEN_EXACT") == "1"
 
 
 def _model(name: str, dtype: torch.dtype = torch.float64, dropout: float = 0.0) -> NavModel:
@@ -109,7 +109,7 @@ def _outputs(prefix: str, logits, values, hidden=None) -> dict[str, torch.Tensor
     return out
 
 
-# -- the variants, through today's entry points ---------------------------------------------------
+# -- the variants, through the policy's entry points ---------------------------------------------------
 def run_forward(name: str) -> dict[str, torch.Tensor]:
     """``model(obs, hidden, prev_policy)`` stepped through an episode, and the gradient of a loss."""
     model = _model(name)
@@ -132,19 +132,17 @@ def run_step(name: str, precision: str) -> dict[str, torch.Tensor]:
     """One step at a precision through a recording :class:`RolloutLstm` (the A3C actor's and the
     evaluator's step), gradients through its deferred weight gradient. bf16 runs in train mode, so
     the dropout masks' draws are part of what must not change."""
-    from mapless.agent.acting import step_at_precision
-
     bf16 = precision == "bf16"
     dtype = torch.float32 if bf16 else torch.float64
     model = _model(name, dtype, dropout=0.25 if bf16 else 0.0)
     model.train(bf16)
     obs, actions, rewards, hidden = _inputs(model, dtype)
-    lstm = RolloutLstm(model.lstm, dtype=torch.bfloat16 if bf16 else None)
+    lstm = RolloutLstm(model.recurrent_cell, dtype=torch.bfloat16 if bf16 else None)
     policy = torch.zeros(BATCH, 6, dtype=dtype)
     torch.manual_seed(1)
     logits, values = [], []
     for t in range(STEPS):
-        out = step_at_precision(model, lstm, obs[t], hidden, policy)
+        out = model.rollout_step(obs[t], hidden, policy, lstm)
         logits.append(out.logits)
         values.append(out.value)
         hidden, policy = out.hidden, torch.softmax(out.logits, -1)
@@ -157,8 +155,6 @@ def run_step(name: str, precision: str) -> dict[str, torch.Tensor]:
 
 def run_replay(name: str) -> dict[str, torch.Tensor]:
     """A recorded segment replayed time-batched, with episode starts inside it (PPO's update)."""
-    from mapless.agent.sequence import replay_segment
-
     model = _model(name)
     obs, actions, rewards, hidden = _inputs(model, torch.float64)
     stacked = {k: torch.stack([o[k] for o in obs]) for k in obs[0]}
@@ -166,7 +162,7 @@ def run_replay(name: str) -> dict[str, torch.Tensor]:
     prev_policy = torch.softmax(torch.randn(STEPS, BATCH, 6, generator=gen, dtype=torch.float64), -1)
     starts = torch.zeros(STEPS, BATCH, dtype=torch.bool)
     starts[2, 1] = starts[4, 0] = True
-    logits, values = replay_segment(model, stacked, prev_policy, starts, hidden)
+    logits, values = model.replay(stacked, prev_policy, starts, hidden)
     _loss(list(logits), list(values), actions, rewards).backward()
     return _outputs("replay", list(logits), list(values)) | _fingerprint(model, _param_grads(model))
 
@@ -229,8 +225,7 @@ def run_value(name: str) -> dict[str, torch.Tensor]:
     model = _model(name)
     obs, _, _, hidden = _inputs(model, torch.float64)
     policy = torch.softmax(torch.arange(6, dtype=torch.float64).expand(BATCH, 6), -1)
-    with torch.no_grad():
-        return {"value": model(obs[1], hidden, policy).value.reshape(-1)}
+    return {"value": model.predict_values(obs[1], hidden, policy)}
 
 
 CASES: dict[str, Callable[[], dict[str, torch.Tensor]]] = {

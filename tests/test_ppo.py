@@ -13,7 +13,6 @@ import torch
 from train_fixtures import fixture_library, tiny_config
 
 from mapless import checkpoint as ckpt
-from mapless.agent.sequence import replay_segment
 from mapless.config import ConfigError
 from mapless.models import build_model
 from mapless.train.ppo import PPOTrainer
@@ -93,7 +92,7 @@ def test_segment_replay_equals_stepping_the_model_with_resets(name: str) -> None
     starts = torch.zeros(steps, batch, dtype=torch.bool)
     starts[2, 1] = starts[4, 0] = True  # new episodes inside the segment
     hidden = (torch.randn(batch, model.hidden_size), torch.randn(batch, model.hidden_size))
-    logits, values = replay_segment(model, obs, prev_policy, starts, hidden)
+    logits, values = model.replay(obs, prev_policy, starts, hidden)
     h, c_ = hidden
     for t in range(steps):
         keep = (~starts[t]).float().unsqueeze(-1)
@@ -103,7 +102,7 @@ def test_segment_replay_equals_stepping_the_model_with_resets(name: str) -> None
         h, c_ = out.hidden
     # The state after a start does not depend on what came before it.
     other = (torch.randn_like(hidden[0]), torch.randn_like(hidden[1]))
-    again, _ = replay_segment(model, obs, prev_policy, starts, other)
+    again, _ = model.replay(obs, prev_policy, starts, other)
     assert torch.allclose(again[4, 0], logits[4, 0], atol=1e-6)
     assert torch.allclose(again[3, 1], logits[3, 1], atol=1e-6)
     assert not torch.allclose(again[1, 2], logits[1, 2])
@@ -128,8 +127,8 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
         assert segment.starts[1:].any(), "the fixture's episodes should end inside the segment"
     columns = torch.arange(4)
     if trainer.inner is None:
-        logits, values = replay_segment(
-            trainer.model, segment.obs, segment.prev_policy, segment.starts, segment.hidden
+        logits, values = trainer.model.replay(
+            segment.obs, segment.prev_policy, segment.starts, segment.hidden
         )
     else:
         logits, values, _ = trainer._replay_episodes(segment, columns)

@@ -8,10 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.agent.precision import encoder_autocast, like
-from mapless.agent.rollout_lstm import RolloutLstm
-from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel, RecurrentNavModel
-from mapless.models.layers import lstm_state_from_gates
+from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
 from mapless.sim.vector import OBSERVATION_KEYS
 
 
@@ -101,28 +98,6 @@ def sample_actions(probabilities: np.ndarray, uniforms: np.ndarray) -> np.ndarra
     cdf = np.cumsum(probabilities, axis=1, dtype=np.float64)
     u = np.asarray(uniforms, dtype=np.float64) * cdf[:, -1]
     return np.minimum((cdf <= u[:, None]).sum(axis=1), probabilities.shape[1] - 1)
-
-
-def step_at_precision(
-    model: RecurrentNavModel,
-    lstm: RolloutLstm,
-    obs: dict[str, Tensor],
-    hidden: tuple[Tensor, Tensor],
-    prev_policy: Tensor,
-) -> ModelOutput:
-    """One step of ``model`` at ``lstm``'s compute dtype, the one meaning of ``bf16`` in this project
-    (:mod:`mapless.agent.precision`): the encoders under autocast to that dtype, the LSTM's weight
-    products with its operands (recorded for the weight gradient when ``lstm`` records: training),
-    the gates, state and heads in the parameters' float32. The training actor and the evaluator's
-    agent both step through it."""
-    reduced = None if lstm.dtype == model.lstm.weight_ih.dtype else lstm.dtype
-    with encoder_autocast(reduced, hidden[0].device):
-        x, critic_input = model.encode(model.describe(obs), hidden, prev_policy)
-    x, critic_input = like(x, hidden[0]), like(critic_input, hidden[0])
-    _, product = lstm.gates(x, hidden[0])
-    cell = model.lstm
-    h, c = lstm_state_from_gates(product + cell.bias_ih + cell.bias_hh, hidden[1])
-    return ModelOutput(model.actor_linear(h), model.value(h, critic_input), (h, c))
 
 
 def policy_probabilities(logits: Tensor) -> np.ndarray:

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from mapless.agent.fast_weights import LOW_RANK, FastWeightForward, FastWeightState, Step
+from mapless.agent.fast_weights import FastWeightForward, FastWeightState, Step
 from mapless.agent.low_rank import apply_low_rank
-from mapless.models.base import ModelOutput
+from mapless.models.base import LOW_RANK, ModelOutput
 
 
 @dataclass(kw_only=True)
@@ -55,14 +55,15 @@ class TestTimeAdaptation(FastWeightForward):
             if name not in LOW_RANK:  # per-slot copies, updated and reset in place
                 p = params[name].detach()
                 fast[name] = p.unsqueeze(0).expand(batch_size, *p.shape).clone().requires_grad_()
-        cell = self.model.lstm
-        ids = torch.arange(batch_size, device=cell.weight_ih.device)
+        lstm = self._lstm(record=False)
+        cell = lstm.cell
+        ids = torch.arange(batch_size, device=lstm.device)
         columns = self.max_updates * self.steps
         gates, inputs = cell.weight_ih.shape[0], cell.input_size + cell.hidden_size
         return AdaptationState(
             fast=fast,
             ids=ids,
-            lstm=self._lstm(record=False),
+            lstm=lstm,
             left=cell.weight_ih.new_zeros(batch_size, columns, gates),
             right=cell.weight_ih.new_zeros(batch_size, columns, inputs),
             slot_updates=torch.zeros(batch_size, dtype=torch.long, device=ids.device),
@@ -90,7 +91,9 @@ class TestTimeAdaptation(FastWeightForward):
             # The fast weights are updated in place, so an inner step must not reach back into an
             # earlier chunk's graph (it acted with other weights): cut it at chunk starts.
             hidden, prev_policy = (hidden[0].detach(), hidden[1].detach()), prev_policy.detach()
-        output, gates, inputs = self._forward(state, obs, hidden, prev_policy, _low_rank_updates(state))
+        output, gates, inputs = self.model.fast_step(
+            state.fast, obs, hidden, prev_policy, state.lstm, _low_rank_updates(state)
+        )
         state.chunk.append(Step(gates, inputs, state.ids, 0))
         return output
 
@@ -104,7 +107,9 @@ class TestTimeAdaptation(FastWeightForward):
         """``[B]`` V of ``obs`` under each slot's current fast weights, without recording a step (the
         value a time-limit truncation is bootstrapped with)."""
         with torch.no_grad():
-            output, _, _ = self._forward(state, obs, hidden, prev_policy, _low_rank_updates(state))
+            output = self.model.fast_step(
+                state.fast, obs, hidden, prev_policy, state.lstm, _low_rank_updates(state)
+            ).output
         return output.value.reshape(-1)
 
     def observe(self, state: AdaptationState, output: ModelOutput, alive: Tensor) -> None:

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from mapless.actions import DONE, N_MOVEMENT_ACTIONS, NUM_ACTIONS
-from mapless.agent.acting import AdaptingActor, PolicyMemory, observation_keys, step_at_precision
+from mapless.agent.acting import AdaptingActor, PolicyMemory, observation_keys
 from mapless.agent.precision import keep_compiled_kernels
 from mapless.agent.rollout_lstm import RolloutLstm
 from mapless.models.base import RecurrentNavModel
@@ -39,14 +39,14 @@ class ModelAgent:
     start_every = 1
 
     def __init__(self, model, batch_size: int, bf16: bool = False):
-        """``bf16``: step at training's ``precision: bf16`` (:func:`mapless.agent.acting.step_at_precision`)."""
+        """``bf16``: step at training's ``precision: bf16`` (:meth:`RecurrentNavModel.rollout_step`)."""
         self.batch_size = batch_size
         self.model = model.eval()
         # The parameters are fixed for the whole evaluation: one bfloat16 copy of the LSTM matrices.
         self.lstm = None
         if bf16 and isinstance(model, RecurrentNavModel):
             keep_compiled_kernels()
-            self.lstm = RolloutLstm(model.lstm, record=False, dtype=torch.bfloat16)
+            self.lstm = RolloutLstm(model.recurrent_cell, record=False, dtype=torch.bfloat16)
         # Gathering the feature map is the costly part of a step; skip it for models that ignore it.
         self.observation_keys = observation_keys(model)
         self.memory = PolicyMemory(model, batch_size)
@@ -67,7 +67,7 @@ class ModelAgent:
             if self.lstm is None:
                 out = self.model(tensors, memory.hidden, memory.prev_policy)
             else:
-                out = step_at_precision(self.model, self.lstm, tensors, memory.hidden, memory.prev_policy)
+                out = self.model.rollout_step(tensors, memory.hidden, memory.prev_policy, self.lstm)
             return memory.advance(out).numpy()
 
     def after_step(self, actions: np.ndarray, step: BatchStep) -> None:

@@ -1,5 +1,6 @@
-"""Per-episode fast weights: an adaptive model's forward pass with each episode's own adapted
-parameters θ^b, and the learned loss's k-row buffer. The two inner loops build on it: meta-training
+"""Per-episode fast weights: each episode's own adapted parameters θ^b, which the model's
+:meth:`~mapless.models.base.RecurrentNavModel.fast_step` steps with, and the learned loss's k-row
+buffer. The two inner loops build on it: meta-training
 (:class:`mapless.agent.meta.InnerLoop`, first and second order) and test-time adaptation
 (:class:`mapless.agent.adaptation.TestTimeAdaptation`).
 
@@ -12,28 +13,20 @@ encoder -> LSTMCell -> actor/critic heads.
   so ``W^b [x || h] = W_0 [x || h] - α Σ_i Σ_t δ^{(i)}_{b,t} ([x^{(i)}_{b,t} || h^{(i)}_{b,t-1}] · [x || h])``:
   every inner step adds its k factors (``left = -α δ [B, k, 4H]``, ``right [B, k, D + H]``).
 * Everything else that adapts (encoder, LSTM biases, actor) is small and is held per episode as a
-  ``[B, ...]`` tensor. The encoder runs as ``vmap(functional_call(encoder, θ^b, ...))``, the LSTM and
-  heads run batched.
+  ``[B, ...]`` tensor. ``fast_step`` runs the encoder as ``vmap(functional_call(encoder, θ^b, ...))``
+  and the LSTM and heads batched.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
-from torch import Tensor, nn
-from torch.func import functional_call, vmap
+from torch import Tensor
 
 from mapless.agent.buffers import BufferPool
-from mapless.agent.precision import encoder_autocast, like
 from mapless.agent.rollout_lstm import RolloutLstm
-from mapless.models.base import ModelOutput, NavModel, RecurrentNavModel
-from mapless.models.layers import lstm_state_from_gates
-
-#: LSTM matrices (of :attr:`RecurrentNavModel.lstm`) whose per-episode updates are kept in low rank.
-LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
+from mapless.models.base import LOW_RANK, ModelOutput, NavModel, RecurrentNavModel
 
 
 @dataclass
@@ -63,22 +56,6 @@ class FastWeightState:
     chunk: list[Step] = field(default_factory=list)
 
 
-class _Encoder(nn.Module):
-    """``model.encode`` (after ``model.describe`` unless that runs outside) as a module's forward, so
-    that ``functional_call`` can swap its weights."""
-
-    def __init__(self, model: RecurrentNavModel, describe: bool):
-        super().__init__()
-        self.model = model
-        self.describe = describe
-
-    def forward(
-        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
-    ) -> tuple[Tensor, Tensor | None]:
-        described = self.model.describe(obs) if self.describe else obs
-        return self.model.encode(described, hidden, prev_policy)
-
-
 class FastWeightForward:
     """An adaptive model run with per-episode fast weights (base of both inner loops)."""
 
@@ -100,63 +77,10 @@ class FastWeightForward:
         self.names = model.inner_parameter_names()  # from the model's parameter roles
         if not isinstance(model, RecurrentNavModel) or not set(LOW_RANK) <= set(self.names):
             raise TypeError(f"model {model.config.name!r} is not an adaptive encoder-LSTM model")
-        # Adapted parameters of the batched recurrent core, kept out of the vmapped encoder's call.
-        self._core = set(model.core_parameter_names())
-        # Under adapt: policy, describe() reads θ_0 only: one batched call instead of B under vmap.
-        self._describe_batched = model.adapts_policy_only
-        self._encoder = _Encoder(model, describe=not self._describe_batched)
         self.buffers = BufferPool()  # the LSTM operand and weight gradients, reused by every batch
 
     def _lstm(self, record: bool) -> RolloutLstm:
-        return RolloutLstm(self.model.lstm, record=record, dtype=self.dtype, buffers=self.buffers)
-
-    def _param(self, state: FastWeightState, name: str) -> Tensor:
-        """Per-episode ``[B, ...]`` fast weight, or θ_0 when the inner step does not adapt ``name``."""
-        return state.fast[name] if name in state.fast else self.model.get_parameter(name)
-
-    def _forward(
-        self,
-        state: FastWeightState,
-        obs: dict[str, Tensor],
-        hidden: tuple[Tensor, Tensor],
-        prev_policy: Tensor,
-        low_rank: Callable[[Tensor], Tensor] | None,
-    ) -> tuple[ModelOutput, Tensor, Tensor]:
-        """The model's forward pass with each episode's own fast weights; ``low_rank`` maps the step's
-        ``[x || h]`` to the episodes' LSTM-matrix updates of the gates (None before any inner step).
-        Returns the output, the gate pre-activations and ``[x || h]``."""
-        model = self.model
-        encoder_fast = {f"model.{n}": w for n, w in state.fast.items() if n not in self._core}
-
-        def one_episode(fast, episode_obs, h, c, policy):
-            single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}
-            x, extra = functional_call(
-                self._encoder, fast, (single, (h.unsqueeze(0), c.unsqueeze(0)), policy.unsqueeze(0))
-            )
-            return (x[0],) if extra is None else (x[0], extra[0])
-
-        with encoder_autocast(self.dtype, prev_policy.device):
-            if self._describe_batched:
-                obs = model.describe(obs)
-            encoded = vmap(one_episode, randomness="different")(
-                encoder_fast, obs, hidden[0], hidden[1], prev_policy
-            )
-        x, extra = like(encoded[0], hidden[0]), (like(encoded[1], hidden[0]) if len(encoded) > 1 else None)
-
-        # The LSTM cell of layers.lstm_step, with θ_0's matrices plus the episodes' low-rank updates.
-        h_prev, c_prev = hidden
-        inputs, product = state.lstm.gates(x, h_prev)
-        gates = product + self._param(state, "lstm.bias_ih") + self._param(state, "lstm.bias_hh")
-        if low_rank is not None:
-            gates = gates + low_rank(inputs)
-        h, c = lstm_state_from_gates(gates, c_prev)
-
-        weight = self._param(state, "actor_linear.weight")
-        if weight.dim() == 3:
-            logits = torch.einsum("bh,bah->ba", h, weight) + self._param(state, "actor_linear.bias")
-        else:
-            logits = F.linear(h, weight, self._param(state, "actor_linear.bias"))
-        return ModelOutput(logits, model.value(h, extra), (h, c)), gates, inputs
+        return RolloutLstm(self.model.recurrent_cell, record=record, dtype=self.dtype, buffers=self.buffers)
 
     def _chunk_rows(self, state: FastWeightState, output: ModelOutput) -> Tensor | None:
         """Record the step's row ``[h_t || π_t]``; after k rows, the chunk's ``[B, k, H + 6]`` rows

@@ -44,10 +44,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from mapless.agent.fast_weights import LOW_RANK, FastWeightForward, FastWeightState, Step, align
+from mapless.agent.fast_weights import FastWeightForward, FastWeightState, Step, align
 from mapless.agent.low_rank import LowRankUpdates
 from mapless.agent.rollout_lstm import accumulate_grad
-from mapless.models.base import ModelOutput, NavModel
+from mapless.models.base import LOW_RANK, ModelOutput, NavModel
 
 
 @dataclass
@@ -110,8 +110,9 @@ class InnerLoop(FastWeightForward):
             for name in self.names
             if name not in LOW_RANK
         }
-        ids = torch.arange(batch_size, device=self.model.lstm.weight_ih.device)
-        state = InnerLoopState(fast=fast, ids=ids, lstm=self._lstm(record=True), batch_size=batch_size)
+        lstm = self._lstm(record=True)
+        ids = torch.arange(batch_size, device=lstm.device)
+        state = InnerLoopState(fast=fast, ids=ids, lstm=lstm, batch_size=batch_size)
         state.sources = {name: [(w, ids)] for name, w in fast.items()}
         return state
 
@@ -123,7 +124,9 @@ class InnerLoop(FastWeightForward):
         prev_policy: Tensor,
     ) -> ModelOutput:
         """The model's forward pass with each episode's own fast weights."""
-        output, gates, inputs = self._forward(state, obs, hidden, prev_policy, state.low_rank)
+        output, gates, inputs = self.model.fast_step(
+            state.fast, obs, hidden, prev_policy, state.lstm, state.low_rank
+        )
         step = Step(gates, inputs, state.ids, state.updates)
         if state.updates < self.max_updates:
             state.chunk.append(step)

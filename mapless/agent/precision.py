@@ -10,7 +10,8 @@
 
 Parameters, optimizer state, LSTM gates, heads, the learned loss and the A3C loss stay float32.
 Evaluation runs in float32 unless asked otherwise; ``mapless eval --bf16`` means the same as here
-(a non-adaptive model's step at a precision: :func:`mapless.agent.acting.step_at_precision`).
+(a model's step at a precision: :meth:`mapless.models.base.RecurrentNavModel.rollout_step`, which
+applies both).
 
 On the CPU, bfloat16 matrix products run through oneDNN, which compiles a kernel for every operand
 shape it meets (4-5 ms each on a Sapphire Rapids core, against 0.4 ms for the product itself at
@@ -23,22 +24,11 @@ than 1,024 shapes within 30 updates, so with the default cache it keeps recompil
 from __future__ import annotations
 
 import os
-from contextlib import AbstractContextManager
 
 import torch
 
 #: precision -> reduced compute dtype (None: the parameters' own, float32 in training).
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
-
-
-def encoder_autocast(dtype: torch.dtype | None, device: torch.device) -> AbstractContextManager:
-    """Autocast to ``dtype`` on ``device``'s type (a no-op context for None)."""
-    return torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
-
-
-def like(x: torch.Tensor | None, reference: torch.Tensor) -> torch.Tensor | None:
-    """``x`` (an autocast output) back in the dtype of the rollout's state ``reference``."""
-    return x if x is None or x.dtype == reference.dtype else x.to(reference.dtype)
 
 
 #: oneDNN kernels kept compiled per process (oneDNN's default is 1,024).

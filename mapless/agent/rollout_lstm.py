@@ -99,6 +99,10 @@ class RolloutLstm:
         #: the weight gradients the last :meth:`grad` returned (pool buffers, see accumulate_grad)
         self.weight_gradients: tuple[Tensor, ...] = ()
 
+    @property
+    def device(self) -> torch.device:
+        return self.cell.weight_ih.device
+
     def gates(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
         """``([x || h], [x || h] · Wᵀ)``: the step's input row and its gate pre-activations before the
         biases (the caller adds biases and any per-episode terms; their sum has the same gradient)."""

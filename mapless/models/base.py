@@ -6,6 +6,13 @@ previous step's policy (``[B, 6]``), and return :class:`ModelOutput`. Every comp
 with plain tensor ops on the module's own parameters (the LSTM step included), so
 ``torch.func.functional_call`` with any parameter dict, and ``torch.func.vmap`` over per-episode
 parameters (the meta-learning inner loop, :mod:`mapless.agent.meta`), evaluate the same function.
+
+A recurrent policy (:class:`RecurrentNavModel`) owns every form of its step, so that agent/ and
+train/ call them and never compute with its submodules: ``forward``; :meth:`~RecurrentNavModel.
+rollout_step` (through a rollout's LSTM weight products, at a precision); :meth:`~RecurrentNavModel.
+replay` (a recorded segment, time-batched); :meth:`~RecurrentNavModel.fast_step` (per-episode fast
+weights); :meth:`~NavModel.predict_values` (the value alone). They share the encoder stage and the
+heads, and differ only in how the gate pre-activations are formed.
 """
 
 from __future__ import annotations
@@ -14,16 +21,19 @@ import abc
 import contextlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple, Protocol
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.func import functional_call, vmap
+from torch.profiler import record_function
 
 from mapless.actions import NUM_ACTIONS as NUM_ACTIONS  # the policy's width, for every model
 from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
 from mapless.models.initialisation import glorot_init, init_heads_and_lstm
-from mapless.models.layers import lstm_step
+from mapless.models.layers import lstm_state_from_gates, lstm_step
 from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -38,6 +48,29 @@ class ModelOutput(NamedTuple):
     logits: Tensor
     value: Tensor
     hidden: tuple[Tensor, Tensor]
+
+
+class FastStep(NamedTuple):
+    """:meth:`RecurrentNavModel.fast_step`'s output, with what the inner step differentiates: the gate
+    pre-activations ``gates [B, 4H]`` and the LSTM's input row ``inputs [B, D + H] = [x || h]``."""
+
+    output: ModelOutput
+    gates: Tensor
+    inputs: Tensor
+
+
+class WeightProducts(Protocol):
+    """The LSTM's weight products of one rollout (:class:`mapless.agent.rollout_lstm.RolloutLstm`):
+    ``gates(x, h)`` is ``([x || h], [x || h] · Wᵀ)`` with ``dtype`` operands, biases not added."""
+
+    dtype: torch.dtype
+
+    def gates(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]: ...
+
+
+#: The LSTM matrices (of :class:`RecurrentNavModel`), whose per-episode updates the meta-learning
+#: inner loop keeps in low rank instead of as per-episode copies (:mod:`mapless.agent.fast_weights`).
+LOW_RANK = ("lstm.weight_ih", "lstm.weight_hh")
 
 
 #: What the meta-learning inner step may adapt (:attr:`ModelConfig.adapt`); ``none`` turns the
@@ -205,6 +238,13 @@ class NavModel(nn.Module):
     def graph_name(self) -> str:
         return self.config.graph or str(self.default_graph)
 
+    def predict_values(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> Tensor:
+        """``[B]`` V of the state, without a graph (the value a truncation is bootstrapped with)."""
+        with torch.no_grad():
+            return self(obs, hidden, prev_policy).value.reshape(-1)
+
     # -- reuse across steps ----------------------------------------------------------------------
     _in_view_memo: InViewMemo | None = None
 
@@ -291,9 +331,184 @@ class RecurrentNavModel(NavModel, abc.ABC):
         """Critic ``[B, 1]`` on the new hidden state (and the encoder's extra critic input)."""
         return self.critic_linear(h)
 
+    @property
+    def recurrent_cell(self) -> nn.LSTMCell:
+        """The LSTM cell whose matrices a rollout's weight products read (the caller makes a
+        :class:`~mapless.agent.rollout_lstm.RolloutLstm` of it once per rollout and passes it to
+        :meth:`rollout_step` or :meth:`fast_step`)."""
+        return self.lstm
+
+    # -- the step, in each of its forms ----------------------------------------------------------
     def forward(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> ModelOutput:
-        x, critic_input = self.encode(self.describe(obs), hidden, prev_policy)
+        x, critic_input = self._encoded(obs, hidden, prev_policy)
         h, c = lstm_step(x, hidden, self.lstm)
-        return ModelOutput(self.actor_linear(h), self.value(h, critic_input), (h, c))
+        return self._output(h, c, critic_input)
+
+    def rollout_step(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor, lstm: WeightProducts
+    ) -> ModelOutput:
+        """One step with the LSTM's weight products taken by ``lstm`` (recorded for its once-summed
+        weight gradient when it records: training), at its compute dtype, the one meaning of
+        ``bf16`` in this project (:mod:`mapless.agent.precision`): the encoders under autocast to
+        that dtype, the gates, state and heads in the parameters' float32. The training actor and
+        the evaluator's bf16 agent step through it."""
+        return self.fast_step({}, obs, hidden, prev_policy, lstm).output
+
+    def fast_step(
+        self,
+        fast: dict[str, Tensor],
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+        lstm: WeightProducts,
+        low_rank: Callable[[Tensor], Tensor] | None = None,
+    ) -> FastStep:
+        """:meth:`rollout_step` with each episode's own weights: ``fast`` maps parameter names to
+        per-episode ``[B, ...]`` tensors (the names it lacks read the shared parameters; the
+        :data:`LOW_RANK` matrices are never in it), and ``low_rank`` maps the step's ``[x || h]`` to
+        the episodes' updates of the gates from their LSTM matrices (None before any inner step)."""
+        reduced = None if lstm.dtype == self.lstm.weight_ih.dtype else lstm.dtype
+        x, critic_input = self._encoded(obs, hidden, prev_policy, reduced, fast)
+        inputs, product = lstm.gates(x, hidden[0])
+        gates = product + self._weight("lstm.bias_ih", fast) + self._weight("lstm.bias_hh", fast)
+        if low_rank is not None:
+            gates = gates + low_rank(inputs)
+        h, c = lstm_state_from_gates(gates, hidden[1])
+        return FastStep(self._output(h, c, critic_input, fast), gates, inputs)
+
+    def replay(
+        self, obs: dict[str, Tensor], prev_policy: Tensor, starts: Tensor, hidden: tuple[Tensor, Tensor]
+    ) -> tuple[Tensor, Tensor]:
+        """``(logits [T, B, A], values [T, B])`` over a recorded segment (the PPO update's forward).
+
+        A segment holds, per environment slot, ``T`` consecutive steps that may span several episodes:
+        ``starts [T, B]`` marks a step that opened a new episode, where the recurrent state restarts
+        from zeros. ``obs`` is ``[T, B, ...]``; ``prev_policy [T, B, 6]`` is replayed as it was
+        recorded while acting (under PPO it is part of the observation), so for models whose encoder
+        does not read the recurrent state (every non-adaptive model) the encoder runs once over all
+        ``T · B`` rows and the LSTM's input product ``W_ih x`` is one matrix product; only ``W_hh h``
+        is computed step by step. The values are those of ``T`` calls of ``forward`` up to rounding
+        (tests/test_ppo.py). ``hidden``: ``(h, c)`` ``[B, H]`` before the first step."""
+        steps, batch = starts.shape
+        flat = {key: value.flatten(0, 1) for key, value in obs.items()}
+        flat_hidden = self.initial_state(steps * batch, prev_policy.device)  # unread by these encoders
+        cell = self.lstm
+        # The labels name the parts in profiles (bench/frame_cost.py); they cost nothing otherwise.
+        with record_function("encoder"):
+            x, critic_input = self._encoded(flat, flat_hidden, prev_policy.flatten(0, 1))
+            input_gates = F.linear(x, cell.weight_ih, cell.bias_ih + cell.bias_hh).view(steps, batch, -1)
+        keep = (~starts).to(x.dtype).unsqueeze(-1)
+        h, c = hidden
+        outputs = []
+        with record_function("lstm"):
+            for t in range(steps):
+                h, c = h * keep[t], c * keep[t]
+                h, c = lstm_state_from_gates(input_gates[t] + F.linear(h, cell.weight_hh), c)
+                outputs.append(h)
+        with record_function("heads"):
+            logits, values = self._heads(torch.stack(outputs).flatten(0, 1), critic_input)
+        return logits.view(steps, batch, -1), values.view(steps, batch)
+
+    # -- the parts every form shares ---------------------------------------------------------------
+    def _encoded(
+        self,
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+        dtype: torch.dtype | None = None,
+        fast: dict[str, Tensor] | None = None,
+    ) -> tuple[Tensor, Tensor | None]:
+        """``encode(describe(obs))``: under autocast to a reduced ``dtype`` with the result back in
+        the state's dtype, and per episode under ``vmap`` where ``fast`` holds encoder weights."""
+        per_episode = {}
+        if fast:
+            core = set(self.core_parameter_names())  # run batched, after the encoder
+            per_episode = {f"model.{n}": w for n, w in fast.items() if n not in core}
+        if dtype is None and not per_episode:
+            return self.encode(self.describe(obs), hidden, prev_policy)
+        with _autocast(dtype, prev_policy.device):
+            if not per_episode:
+                x, critic_input = self.encode(self.describe(obs), hidden, prev_policy)
+            else:
+                x, critic_input = self._encoded_per_episode(per_episode, obs, hidden, prev_policy)
+        if dtype is None:
+            return x, critic_input
+        return _like(x, hidden[0]), _like(critic_input, hidden[0])
+
+    def _encoded_per_episode(
+        self,
+        weights: dict[str, Tensor],
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+    ) -> tuple[Tensor, Tensor | None]:
+        """The encoder with episode b's weights ``weights[·][b]`` on row b, as ``vmap`` over
+        ``functional_call``. Under ``adapt: policy`` :meth:`describe` reads shared weights only: one
+        batched call instead of B under vmap."""
+        describe_batched = self.adapts_policy_only
+        encoder = _Encoder(self, describe=not describe_batched)
+
+        def one_episode(weights, episode_obs, h, c, policy):
+            single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}
+            x, extra = functional_call(
+                encoder, weights, (single, (h.unsqueeze(0), c.unsqueeze(0)), policy.unsqueeze(0))
+            )
+            return (x[0],) if extra is None else (x[0], extra[0])
+
+        if describe_batched:
+            obs = self.describe(obs)
+        encoded = vmap(one_episode, randomness="different")(weights, obs, hidden[0], hidden[1], prev_policy)
+        return encoded[0], (encoded[1] if len(encoded) > 1 else None)
+
+    def _heads(
+        self, h: Tensor, critic_input: Tensor | None, fast: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``(logits, value)`` on the new hidden state; the actor per episode where ``fast`` holds it."""
+        weight, bias = self._weight("actor_linear.weight", fast), self._weight("actor_linear.bias", fast)
+        if weight.dim() == 3:
+            logits = torch.einsum("bh,bah->ba", h, weight) + bias
+        else:
+            logits = F.linear(h, weight, bias)
+        return logits, self.value(h, critic_input)
+
+    def _output(
+        self, h: Tensor, c: Tensor, critic_input: Tensor | None, fast: dict[str, Tensor] | None = None
+    ) -> ModelOutput:
+        return ModelOutput(*self._heads(h, critic_input, fast), (h, c))
+
+    def _weight(self, name: str, fast: dict[str, Tensor] | None) -> Tensor:
+        """The per-episode ``fast[name]``, or the shared parameter where the episodes do not adapt it."""
+        if fast and name in fast:
+            return fast[name]
+        # Not get_parameter: under functional_call the attribute is a plain tensor, not a Parameter.
+        module, _, attribute = name.rpartition(".")
+        return getattr(self.get_submodule(module), attribute)
+
+
+class _Encoder(nn.Module):
+    """``model.encode`` (after ``model.describe`` unless that runs outside) as a module's forward, so
+    that ``functional_call`` can swap its weights. Made per call: as an attribute of the model it
+    would be a submodule, in its state dict."""
+
+    def __init__(self, model: RecurrentNavModel, describe: bool):
+        super().__init__()
+        self.model = model
+        self.describe = describe
+
+    def forward(
+        self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
+    ) -> tuple[Tensor, Tensor | None]:
+        described = self.model.describe(obs) if self.describe else obs
+        return self.model.encode(described, hidden, prev_policy)
+
+
+def _autocast(dtype: torch.dtype | None, device: torch.device) -> contextlib.AbstractContextManager:
+    """Autocast to ``dtype`` on ``device``'s type (a no-op context for None)."""
+    return torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
+
+
+def _like(x: Tensor | None, reference: Tensor) -> Tensor | None:
+    """``x`` (an autocast output) back in the dtype of the rollout's state ``reference``."""
+    return x if x is None or x.dtype == reference.dtype else x.to(reference.dtype)

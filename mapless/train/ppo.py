@@ -43,7 +43,6 @@ from torch import Tensor
 
 from mapless.agent.acting import observation_keys
 from mapless.agent.meta import InnerLoop
-from mapless.agent.sequence import replay_segment
 from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
@@ -188,9 +187,7 @@ class PPOTrainer(BatchedTrainer):
                 obs = {k: v[:, columns] for k, v in segment.obs.items()}
                 hidden = tuple(t.index_select(0, columns) for t in segment.hidden)
                 starts = segment.starts[:, columns]
-                logits, values = replay_segment(
-                    self.model, obs, segment.prev_policy[:, columns], starts, hidden
-                )
+                logits, values = self.model.replay(obs, segment.prev_policy[:, columns], starts, hidden)
                 state = None
             else:
                 logits, values, state = self._replay_episodes(segment, columns)

@@ -19,13 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapless.agent.acting import (
-    PolicyMemory,
-    policy_probabilities,
-    sample_actions,
-    step_at_precision,
-    to_tensors,
-)
+from mapless.agent.acting import PolicyMemory, policy_probabilities, sample_actions, to_tensors
 from mapless.agent.buffers import BufferPool
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.meta import InnerLoop, InnerLoopState
@@ -92,7 +86,7 @@ class Actor:
         self.memo = InViewMemo(max_rows=None)
         self.state = self.inner.start(batch_size) if self.inner is not None else None
         if self.inner is None and isinstance(self.model, RecurrentNavModel) and torch.is_grad_enabled():
-            self.lstm = RolloutLstm(self.model.lstm, dtype=self.dtype, buffers=self.buffers)
+            self.lstm = RolloutLstm(self.model.recurrent_cell, dtype=self.dtype, buffers=self.buffers)
         else:
             self.lstm = None
 
@@ -109,7 +103,7 @@ class Actor:
             return self.inner.forward(self.state, obs, hidden, prev_policy)
         if self.lstm is None:
             return self.model(obs, hidden, prev_policy)
-        return step_at_precision(self.model, self.lstm, obs, hidden, prev_policy)
+        return self.model.rollout_step(obs, hidden, prev_policy, self.lstm)
 
     def observe(self, output: ModelOutput, alive: Tensor) -> None:
         if self.inner is not None:

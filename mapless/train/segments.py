@@ -204,8 +204,8 @@ class SegmentCollector:
         if self.whole_episodes:
             return torch.zeros(n, device=self.device)
         obs = to_tensors(self.env.observe(self.observation_keys), self.device)
-        with torch.no_grad(), self.model.memoizing_in_view(self._memo):
-            return self.model(obs, self.memory.hidden, self.memory.prev_policy).value.reshape(n)
+        with self.model.memoizing_in_view(self._memo):
+            return self.model.predict_values(obs, self.memory.hidden, self.memory.prev_policy)
 
     # -- the loop's agent ----------------------------------------------------------------------------
     def start(self, slots: np.ndarray, env: BatchedNavEnv) -> None:
@@ -276,5 +276,4 @@ class SegmentCollector:
                 return self._actor.value(obs_all, memory.hidden, memory.prev_policy).index_select(0, index)
             obs = {k: v.index_select(0, index) for k, v in obs_all.items()}
             rows = tuple(t.index_select(0, index) for t in memory.hidden)
-            with torch.no_grad():
-                return self.model(obs, rows, memory.prev_policy.index_select(0, index)).value.reshape(-1)
+            return self.model.predict_values(obs, rows, memory.prev_policy.index_select(0, index))
