@@ -167,17 +167,17 @@ PUBLISHED_MAPPED = {
 }
 
 
-def test_the_reference_protocol_reads_the_published_episodes():
-    assert REFERENCE.published == "hoz22" and STANDARD.published is None
-    assert evalsets.set_path("ref_test").name == "ref_test_hoz22.json.gz"
-    # Whatever targets the model was trained on: the published sets are the reference protocol's.
-    assert evalsets.set_path("ref_val", "savn").name == "ref_val_hoz22.json.gz"
+def test_the_training_target_set_decides_which_sets_are_read():
+    # The reference protocol reads the sets of the model's training target set: the sampled sets of
+    # mjolnir22 (the default), the published HOZ episodes of hoz22 (tests/test_target_sets.py).
+    assert evalsets.set_path("ref_test").name == "ref_test_mjolnir22.json.gz"
+    assert evalsets.set_path("ref_val", "hoz22").name == "ref_val_hoz22.json.gz"
+    assert evalsets.set_path("ref_val", "savn").name == "ref_val_savn.json.gz"
     assert evalsets.set_path("test").name == "test_mjolnir22.json.gz"
-    # The project's own sampled reference sets, by name; a path stays a path.
-    own = evalsets.set_path("ref_test", episodes_file="ref_test_mjolnir22")
-    assert own == evalsets.builtin_path("ref_test", "mjolnir22") and own.is_file()
-    assert evalsets.set_path("ref_test", episodes_file="x/ref_test_mjolnir22") == Path("x/ref_test_mjolnir22")
-    # No published set has layout-shift versions: those stay the model's target set's.
+    # A shipped set by name, whatever the target set; a path stays a path.
+    hoz = evalsets.set_path("ref_test", episodes_file="ref_test_hoz22")
+    assert hoz == evalsets.builtin_path("ref_test", "hoz22") and hoz.is_file()
+    assert evalsets.set_path("ref_test", episodes_file="x/ref_test_hoz22") == Path("x/ref_test_hoz22")
     assert evalsets.set_path("ref_test", layouts="gen:3").name == "ref_test_gen3_mjolnir22.json.gz"
 
 
@@ -185,7 +185,9 @@ def test_the_reference_protocol_reads_the_published_episodes():
 def test_the_shipped_published_sets_are_their_files_mapped(split):
     from mapless.offline.episodes import map_episodes, read_episode_file
 
-    episodes, header = evalsets.load(evalsets.set_path(split), fingerprint(REFERENCE.sim(SimConfig())))
+    episodes, header = evalsets.load(
+        evalsets.set_path(split, "hoz22"), fingerprint(REFERENCE.sim(SimConfig()))
+    )
     assert (header["split"], header["target_set"]) == (split, "hoz22")
     rooms = [e.episode_id.split("/")[1] for e in episodes]
     assert collections.Counter(rooms) == PUBLISHED_MAPPED[split]
@@ -220,7 +222,9 @@ def test_the_published_sets_map_exactly_onto_a_built_scene():
         if e.scene == "FloorPlan424"
     ]
     report = map_episodes(raw, scene_data=lambda name: data, id_prefix="hoz22_test")
-    shipped = [e for e in evalsets.load(evalsets.set_path("ref_test"))[0] if e.scene == "FloorPlan424"]
+    shipped = [
+        e for e in evalsets.load(evalsets.set_path("ref_test", "hoz22"))[0] if e.scene == "FloorPlan424"
+    ]
     assert report.episodes == shipped and len(shipped) == report.total == 200
     for e in shipped:
         goal = data.goal_mask_for_instances(np.array([data.instance_ids.index(i) for i in e.target_ids]))
@@ -230,9 +234,9 @@ def test_the_published_sets_map_exactly_onto_a_built_scene():
 def test_per_room_keeps_the_first_episodes_of_each_published_file():
     from mapless.evaluate.selection import load_episodes
 
-    episodes = load_episodes("ref_test", per_room=250)
+    episodes = load_episodes("ref_test", per_room=250, target_set="hoz22")
     assert collections.Counter(e.episode_id.split("/")[1] for e in episodes) == dict.fromkeys(ROOM_TYPES, 250)
-    full = load_episodes("ref_test")
+    full = load_episodes("ref_test", target_set="hoz22")
     assert episodes == [
         e for room in ROOM_TYPES for e in [f for f in full if f.episode_id.split("/")[1] == room][:250]
     ]

@@ -33,8 +33,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     make.add_argument(
         "--target-set",
         default="mjolnir22",
-        help="mjolnir22 or savn (sampled), or hoz22: the shipped published HOZ files mapped onto the "
-        "scenes (splits ref_val, ref_test; --per-room and --seed do not apply), with their mapping report",
+        help="the training target set whose sets to make (mapless.scenes.categories.TARGET_SETS): mjolnir22, "
+        "savn (sampled), or hoz22, whose ref_val and ref_test sets are the shipped published HOZ files "
+        "mapped onto the scenes (--per-room and --seed do not apply; with their mapping report) and "
+        "whose other splits are sampled over its classes",
     )
     make.add_argument("--per-room", type=int, default=250)
     make.add_argument("--seed", type=seed_int, default=0)
@@ -72,7 +74,7 @@ def _make(args: argparse.Namespace) -> int:
             raise MaplessError(f"no evaluation split {split!r}; choose from {evalsets.EVAL_SPLITS}")
         config = protocol_of_split(split).sim(base)
         library = libraries.setdefault(config, SceneLibrary.builtin(config, args.cache_dir))
-        if args.target_set in evalsets.PUBLISHED and not args.layouts:
+        if evalsets.is_published(split, args.target_set) and not args.layouts:
             from mapless.offline.episodes import mapping_table
 
             episodes, reports = evalsets.map_published(library, split, args.target_set)

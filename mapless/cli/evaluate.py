@@ -197,6 +197,7 @@ def _eval(args: argparse.Namespace) -> int:
     else:
         episodes = load_episodes(eval_split, args.episodes, **sets)
     report_name = args.episodes.name if args.episodes else None
+    untrained = _untrained_targets(episodes, target_set, path.exists(), meta)
     rule = _rule(protocol, library, trained_rule)
     if args.select and not path.is_dir():
         raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
@@ -227,6 +228,7 @@ def _eval(args: argparse.Namespace) -> int:
             "",
             f"Protocol: {meta['protocol_label']}.",
             "",
+            *([f"**Not the training targets**: {untrained}.", ""] if untrained else []),
             model_table([record]),
             "",
             details_table([record]),
@@ -280,6 +282,26 @@ def _rule(protocol: Protocol, library, trained_rule: float | None) -> str:
     if trained_rule not in (None, protocol.visibility_distance):
         rule += f" (trained with success within {trained_rule} m)"
     return rule
+
+
+def _untrained_targets(episodes: list, target_set: str, trained: bool, meta: dict) -> str | None:
+    """A trained model scored on episodes whose targets it never trained for (a published pickle, a
+    set of another target set) is said so, on stderr and in the record (``untrained_targets``), not
+    passed silently: its score mixes in classes it never saw as targets. Returns the line, or None."""
+    from mapless.episodes.evalsets import describe_untrained, untrained_targets
+
+    found = untrained_targets(episodes, target_set) if trained else {}
+    if not found:
+        return None
+    line = describe_untrained(found, len(episodes), target_set)
+    meta["untrained_targets"] = {
+        "target_set": target_set,
+        "episodes": sum(n for per_room in found.values() for n in per_room.values()),
+        "of": len(episodes),
+        "classes": found,
+    }
+    print(f"warning: {line}", file=sys.stderr)
+    return line
 
 
 def _published_episodes(path: Path, library, per_room: int | None, meta: dict) -> list:

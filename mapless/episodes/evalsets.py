@@ -5,11 +5,14 @@ drawn over visible instances of the room's targets (as in training), start a uni
 yaw) at horizon 0 from which the target is reachable, in the scene's usable pose-graph component
 (``SceneData.usable_poses``). Under the ``standard`` and ``paper`` protocols the start must not already
 see the target; the ``reference`` protocol's sampled sets (``ref_val``, ``ref_test``) allow it, as the
-references' published sets do. The reference protocol evaluates on published episodes instead
-(:data:`PUBLISHED`, :func:`set_path`): the shipped files mapped onto the built-in scenes
-(:func:`map_published`), stored like the sampled sets under the set name ``hoz22``. The optimal
-length (actions including ``Done``) is stored. The file records the simulator fingerprint it was
-made with; loading it under other simulator parameters is an error, since lengths would differ.
+references' published sets do. A target set that is a published set (:data:`PUBLISHED`: ``hoz22``)
+has its published episodes as its reference sets instead: the shipped files mapped onto the built-in
+scenes (:func:`map_published`), stored like the sampled sets under its name. An evaluation reads the
+sets of the model's training target set (:func:`set_path`), so that it is scored on the targets it
+was trained for; :func:`untrained_targets` finds the episodes of any other episode file that are not.
+The optimal length (actions including ``Done``) is stored. The file records the simulator
+fingerprint it was made with; loading it under other simulator parameters is an error, since lengths
+would differ.
 
 Layout-shift sets (``layouts="gen:3"``: SOURCE:PER_SCENE) play the split's floor plans under other
 arrangements: after the floor plan, one more draw picks one of its first PER_SCENE variants from
@@ -23,6 +26,7 @@ import gzip
 import io
 import json
 import zlib
+from collections.abc import Iterable
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,7 +36,7 @@ import numpy as np
 from mapless.episodes.protocols import protocol_of_split
 from mapless.errors import MaplessError
 from mapless.files import write_bytes
-from mapless.scenes.catalogue import ROOM_TYPES, scene_names, split_range_label
+from mapless.scenes.catalogue import ROOM_TYPES, room_type_of, scene_names, split_range_label
 from mapless.scenes.categories import targets
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
@@ -44,7 +48,8 @@ FORMAT = "mapless-episodes/1"
 EVAL_SPLITS = ("val", "test", "paper", "ref_val", "ref_test")
 #: Published episode files the package ships (mapless/data/NOTICE.md), by set name: the file of a
 #: room type and split, and which of our splits each of their splits is. ``hoz22``: the HOZ line's
-#: 22-class val (odd x21-x29) and test (even x22-x30) files, the reference protocol's sets.
+#: 22-class val (odd x21-x29) and test (even x22-x30) files, the reference protocol's sets of the
+#: target set ``hoz22`` (mapless.scenes.categories.HOZ22_TARGETS, their classes).
 PUBLISHED: dict[str, tuple[str, dict[str, str]]] = {
     "hoz22": ("episodes/hoz22/{room}_{split}_22.pkl.gz", {"ref_val": "val", "ref_test": "test"}),
 }
@@ -59,7 +64,7 @@ def make_eval_set(
     room_types: tuple[str, ...] = ROOM_TYPES,
     layouts: str | None = None,
 ) -> list[Episode]:
-    if target_set in PUBLISHED:  # mapped, not sampled: per_room and seed do not apply
+    if is_published(split, target_set):  # mapped, not sampled: per_room and seed do not apply
         if layouts:
             raise MaplessError(f"the published set {target_set} has no layout-shift version")
         return map_published(library, split, target_set, room_types)[0]
@@ -128,6 +133,12 @@ def map_published(
         episodes += report.episodes
         reports[path.name.removesuffix(".gz")] = report
     return episodes, reports
+
+
+def is_published(split: str, target_set: str) -> bool:
+    """Whether the ``split`` set of ``target_set`` is a published set's, mapped rather than sampled
+    (``hoz22``'s ``ref_val`` and ``ref_test``; its other splits are sampled over its targets)."""
+    return target_set in PUBLISHED and split in PUBLISHED[target_set][1]
 
 
 def published_path(name: str, split: str, room: str) -> Path:
@@ -229,17 +240,43 @@ def set_path(
     episodes_file: str | Path | None = None,
 ) -> Path:
     """The episode file an evaluation of ``split`` reads: ``episodes_file`` (a path, or the name of
-    a shipped set, e.g. ``ref_test_mjolnir22``, the project's sampled reference test set); else the
-    published set of the split's protocol where it has one (reference: ``hoz22``), whatever the
-    model's ``target_set``; else the shipped set of ``target_set`` (with ``layouts``, its
-    layout-shift set, which no published set has)."""
+    a shipped set, e.g. ``ref_test_hoz22``, the published HOZ test episodes); else the shipped set
+    of the model's ``target_set`` (with ``layouts``, its layout-shift set). The training target set
+    decides, under every protocol: the reference protocol scores ``mjolnir22`` on its sampled
+    ``ref_*_mjolnir22`` sets and ``hoz22`` on the published HOZ episodes (``ref_*_hoz22``)."""
     if episodes_file is not None:
         path = Path(episodes_file)
         shipped = _data_path(f"episodes/{path.name}.json.gz")
         named = not path.exists() and str(episodes_file) == path.name and shipped.is_file()
         return shipped if named else path
-    published = None if layouts else protocol_of_split(split).published
-    return builtin_path(split, published or target_set, layouts)
+    return builtin_path(split, target_set, layouts)
+
+
+def untrained_targets(episodes: Iterable[Episode], target_set: str) -> dict[str, dict[str, int]]:
+    """``{room type: {target: episodes}}`` of the episodes whose target is not one of ``target_set``'s
+    targets of their room type: targets a run trained on that set never navigated to there (the
+    training sampler draws each room type's targets only). Empty when every episode is a training one."""
+    room_targets = targets(target_set)
+    found: dict[str, dict[str, int]] = {}
+    for episode in episodes:
+        room = room_type_of(episode.scene)
+        if episode.target not in room_targets[room]:
+            per_room = found.setdefault(room, {})
+            per_room[episode.target] = per_room.get(episode.target, 0) + 1
+    return found
+
+
+def describe_untrained(found: dict[str, dict[str, int]], total: int, target_set: str) -> str:
+    """One line on :func:`untrained_targets`' result: how many episodes, which classes per room type."""
+    count = sum(n for per_room in found.values() for n in per_room.values())
+    classes = "; ".join(
+        f"{room}: " + ", ".join(f"{t} {n}" for t, n in sorted(per_room.items()))
+        for room, per_room in found.items()
+    )
+    return (
+        f"{count} of {total} episodes have targets the run never trained for (not among target set "
+        f"{target_set}'s targets of their room type): {classes}"
+    )
 
 
 def _data_path(name: str) -> Path:

@@ -8,12 +8,14 @@
 * ``reference`` (what the SAVN/MJOLNIR/HOZ published numbers were measured under): success within
   1.5 m, AI2-THOR's default ``visibilityDistance``, which the references' offline data follow;
   select on the odd floor plans x21-x29 (``ref_val``), report once on the even ones x22-x30
-  (``ref_test``), the split of the published pickles. Its sets are the published episodes
-  themselves: the HOZ line's 22-class val and test files (``hoz22``, shipped in the package and
-  mapped onto the built-in scenes, docs/interop.md), whatever targets the model was trained on; a
-  start may already see the target, as in the published files. The project's own sampled sets of
-  the same split and rule stay available as ``ref_val_<target set>`` / ``ref_test_<target set>``
-  (``mapless eval --episodes ref_test_mjolnir22``; training-time validation uses them).
+  (``ref_test``), the split of the published pickles; a start may already see the target, as in
+  the published files. Its sets are those of the model's training target set
+  (mapless.episodes.evalsets.set_path): ``mjolnir22`` (the paper's targets, the default) is scored
+  on the project's sampled sets ``ref_val_mjolnir22`` / ``ref_test_mjolnir22``; ``hoz22`` on the
+  published episodes themselves, the HOZ line's 22-class val and test files (shipped in the package
+  and mapped onto the built-in scenes as ``ref_val_hoz22`` / ``ref_test_hoz22``, docs/interop.md),
+  whose classes it trains on. A set of targets the run never trained for is refused by an
+  experiment and flagged by ``mapless eval``.
 
 Training is the same under every protocol (x01-x20) except for the success rule, which also decides
 the reward and ``Done``: a run trained for the reference protocol uses ``visibility_distance`` 1.5.
@@ -33,9 +35,8 @@ class Protocol:
     """select_split / report_split: evaluation-set splits (``mapless.scenes.catalogue.SPLITS``);
     equal when selection and report share their episodes. visible_starts: the protocol's evaluation
     sets may start with the target already in view. No protocol's sampled sets start on a pose-graph
-    island (``SceneData.usable_poses``). published: the shipped published episode set
-    (``mapless.episodes.evalsets.PUBLISHED``) that its sets are, whatever targets the model was
-    trained on; None: the sets sampled for the model's target set."""
+    island (``SceneData.usable_poses``). Which set of a split is read follows the model's training
+    target set (mapless.episodes.evalsets.set_path)."""
 
     name: str
     select_split: str
@@ -43,7 +44,6 @@ class Protocol:
     visibility_distance: float
     visible_starts: bool
     label: str
-    published: str | None = None
 
     def sim(self, config: SimConfig) -> SimConfig:
         """``config`` with this protocol's success rule."""
@@ -62,10 +62,8 @@ PROTOCOLS: dict[str, Protocol] = {
     ),
     "reference": Protocol(
         "reference", "ref_val", "ref_test", 1.5, True,
-        "REFERENCE PROTOCOL (the SAVN/MJOLNIR/HOZ data's): success within 1.5 m, selected on the "
-        "published HOZ 22-class val episodes (odd x21-x29), reported once on its test episodes (even "
-        "x22-x30), starts may see the target",
-        "hoz22",
+        "REFERENCE PROTOCOL (the SAVN/MJOLNIR/HOZ data's): success within 1.5 m, selected on val (odd "
+        "x21-x29), reported once on test (even x22-x30), starts may see the target",
     ),
 }  # fmt: skip
 

@@ -38,11 +38,11 @@ def load_episodes(
     layouts: str | None = None,
 ) -> list[Episode]:
     """The fixed episodes of ``split`` (:func:`mapless.episodes.evalsets.set_path`: ``episodes_file``,
-    else the protocol's published set, else the built-in set of ``target_set``; with ``layouts`` the
-    layout-shift set, made on the spot when not shipped), keeping the first ``per_room`` of each
-    room type in ``rooms``: a prefix of the full set, so small budgets evaluate a subset of the very
-    episodes the full budget uses (the published sets are in their files' order, which is shuffled:
-    HOZ evaluates the first 250 of each room type).
+    else the built-in set of the training ``target_set``, hoz22's reference sets the published ones;
+    with ``layouts`` the layout-shift set, made on the spot when not shipped), keeping the first
+    ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small budgets evaluate a
+    subset of the very episodes the full budget uses (the published sets are in their files' order,
+    which is shuffled: HOZ evaluates the first 250 of each room type).
 
     With a built-in simulator ``library``, a file made under other simulator settings is refused: its
     shortest paths (SPL, the L>=5 split) and its "target not yet visible" starts would be wrong there.

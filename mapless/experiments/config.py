@@ -31,17 +31,19 @@ class ExperimentEval:
     """How runs are evaluated.
 
     protocol: ``standard`` (select on val, report on test), ``paper`` (select and report on x21-x30)
-        or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30, on
-        the published HOZ episodes; its runs train under the 1.5 m rule too);
-        mapless.episodes.protocols.
+        or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30; its
+        runs train under the 1.5 m rule too); mapless.episodes.protocols. Every protocol reads the
+        sets of the runs' training target set (``train.env.target_set``): under ``reference``,
+        ``mjolnir22``'s sampled sets or ``hoz22``'s published HOZ episodes.
     per_room: the first N episodes per room type of the fixed sets (250 = all of the sampled ones;
-        of the reference protocol's published sets, up to 1,000 per room type, the first 250 as HOZ
+        of the published HOZ sets of ``hoz22``, up to 1,000 per room type, the first 250 as HOZ
         evaluates).
     select_per_room: the first N per room type of the selection set (None: ``per_room``); selection
         may read a subset while the report reads every episode. The ``paper`` protocol, which selects
         and reports on the same episodes, reads ``per_room`` for both.
     select: evaluate every checkpoint and select (False: the final model only).
-    select_file / report_file: episode files replacing the built-in val / test sets (tests).
+    select_file / report_file: episode files replacing the built-in val / test sets (tests), or the
+        names of shipped sets; their targets must be the training target set's (refused otherwise).
     shift_layouts: the layout-shift experiment's arrangements of the report split (SOURCE:PER_SCENE,
         mapless.episodes.evalsets; ``gen:3``: three generated arrangements per test floor plan).
     shift_file: an episode file replacing that set, e.g. one made on one's own arrangement files

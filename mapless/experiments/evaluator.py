@@ -9,12 +9,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapless.episodes.evalsets import describe_untrained, set_path, untrained_targets
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
 from mapless.evaluate.selection import cached_evaluate, evaluate_run, load_episodes
 from mapless.experiments.config import ExperimentConfig, train_config
+from mapless.scenes.categories import TARGET_SETS
 from mapless.sim.episode import Episode
 
 
@@ -23,6 +25,36 @@ def experiment_scenes(config: ExperimentConfig) -> tuple[LibrarySpec, str]:
     training config. The untrained baselines and the figures use them too."""
     env = train_config(config, config.focus, seed=1).env
     return LibrarySpec.for_env(env), env.target_set
+
+
+def trained_target_sets(config: ExperimentConfig) -> dict[str, str]:
+    """The training target set of each trained model of an experiment (and of each ablation row)."""
+    runs = {m: train_config(config, m, 1) for m in sorted({*config.models, config.focus} - {"random"})}
+    if config.experiment == "ablation":
+        for name, row in config.ablation_table().items():
+            runs[f"{config.focus} ({name})"] = train_config(config, config.focus, 1, row.train)
+    return {name: cfg.env.target_set for name, cfg in runs.items()}
+
+
+def refuse_untrained_targets(config: ExperimentConfig, sets: dict[str, tuple[str, list[Episode]]]) -> None:
+    """Refuses an experiment whose episode sets (``{role: (source, episodes)}``) hold targets that one
+    of its trained runs never trains for: its table would score them on classes they never saw as
+    targets. Called before any training; the error names the fix."""
+    trained = trained_target_sets(config)
+    for role, (source, episodes) in sets.items():
+        for model, target_set in trained.items():
+            found = untrained_targets(episodes, target_set)
+            if not found:
+                continue
+            fits = [name for name in TARGET_SETS if not untrained_targets(episodes, name)]
+            fix = " or ".join(f"--set train.env.target_set={name}" for name in fits)
+            raise MaplessError(
+                f"the {role} episodes ({source}) do not fit the {model} runs: "
+                f"{describe_untrained(found, len(episodes), target_set)}. Either train on the episodes' "
+                f"targets ({fix or 'no target set has them all'}), "
+                f"or evaluate on episodes of target set {target_set}: leave eval.select_file and "
+                "eval.report_file unset (the sets of the training target set) or give files of its targets"
+            )
 
 
 @dataclass
@@ -51,6 +83,20 @@ class Evaluator:
             if same_episodes
             else load_episodes(protocol.report_split, e.report_file, per_room=e.per_room, **sets)
         )
+        # The sets follow the training target set; a file given in their place must fit it too.
+        select_source = set_path(protocol.select_split, target_set, episodes_file=e.select_file).name
+        report_source = set_path(protocol.report_split, target_set, episodes_file=e.report_file).name
+        refuse_untrained_targets(
+            self.config,
+            {
+                "selection": (select_source, self.select_episodes),
+                "report": (report_source, self.report_episodes),
+            },
+        )
+        if not (e.select_file or e.report_file):
+            self.protocol_label = f"{protocol.label}; the episodes of target set {target_set}"
+        if self.config.experiment == "layout_shift" and e.shift_file:
+            refuse_untrained_targets(self.config, {"layout-shift": (e.shift_file, self.shift_episodes)})
 
     @functools.cached_property
     def shift_episodes(self) -> list[Episode]:

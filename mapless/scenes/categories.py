@@ -47,7 +47,25 @@ SAVN_TARGETS: dict[str, tuple[str, ...]] = {
     "bedroom": ("HousePlant", "DeskLamp", "Book", "AlarmClock"),
     "bathroom": ("Sink", "ToiletPaper", "SoapBottle", "LightSwitch"),
 }
-TARGET_SETS = {"mjolnir22": MJOLNIR_TARGETS, "savn": SAVN_TARGETS}
+#: The HOZ line's 22 classes (HOZ, VTNet, DOA, MT), per room type: the union of the goal types of
+#: its published val and test episode files of that room type (mapless/data/episodes/hoz22/, the
+#: reference protocol's published sets; kitchen ``CellPhone`` occurs in the test file only). Only 7
+#: of the 22 are MJOLNIR targets. Every class is a category of ``mjolnir101`` and of ``all_types``
+#: (a context row, a graph node and a GloVe vector in both; tests/test_target_sets.py) and occurs in
+#: the training floor plans x01-x20 of its room type.
+HOZ22_TARGETS: dict[str, tuple[str, ...]] = {
+    "kitchen": (
+        "Bowl", "CellPhone", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle", "LightSwitch",
+        "Microwave", "Pan", "Plate", "Pot", "Sink", "StoveBurner", "Toaster",
+    ),
+    "living_room": (
+        "Book", "CellPhone", "Chair", "DeskLamp", "FloorLamp", "GarbageCan", "Laptop", "LightSwitch",
+        "RemoteControl", "Television",
+    ),
+    "bedroom": ("AlarmClock", "Book", "CellPhone", "Chair", "DeskLamp", "GarbageCan", "Laptop", "LightSwitch"),
+    "bathroom": ("GarbageCan", "LightSwitch", "Sink"),
+}  # fmt: skip
+TARGET_SETS = {"mjolnir22": MJOLNIR_TARGETS, "savn": SAVN_TARGETS, "hoz22": HOZ22_TARGETS}
 CATEGORY_SETS = ("mjolnir101", "all_types")
 
 

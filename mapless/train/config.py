@@ -82,7 +82,8 @@ class EnvConfig:
     """Where training episodes come from.
 
     scenes: split name (``train``), ``split:room``, or comma-separated FloorPlan names.
-    target_set: target list per room type (``mjolnir22`` or ``savn``).
+    target_set: target list per room type (``mjolnir22``, ``savn`` or ``hoz22``,
+        mapless.scenes.categories.TARGET_SETS); the evaluation sets follow it (mapless.episodes.evalsets).
     parent_reward: MJOLNIR's parent-object bonus; None = on for mjolnir_o/mjolnir_r (MJOLNIR's
         ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off otherwise.
     parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
