@@ -279,6 +279,47 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
         assert (root / "sel" / "test.json").is_file()
 
 
+def test_eval_cli_adapted_unadapted_and_at_another_inner_rate(workspace, capsys):
+    """`mapless eval` of one adaptive model file three ways, and `mapless compare` of two of them."""
+    from train_fixtures import tiny_config
+
+    from mapless import checkpoint as ckpt
+    from mapless.models import build_model
+
+    root, _ = workspace
+    config = tiny_config("cvmeta")
+    model = root / "cvmeta.pt"
+    ckpt.atomic_save(
+        ckpt.model_payload(build_model(config.model).state_dict(), config, {"episodes": 1}), model
+    )
+    common = [
+        "eval",
+        str(model),
+        "--split",
+        "test",
+        "--episodes",
+        str(root / "test.json.gz"),
+        "--workers",
+        "1",
+    ]
+    records = {}
+    for name, extra in (("adapted", []), ("theta0", ["--no-adapt"]), ("fast", ["--inner-lr", "0.5"])):
+        assert main([*common, *extra, "--out", str(root / name)]) == 0
+        records[name] = json.loads((root / name / "test.json").read_text())
+    assert "test_time_adaptation" not in records["adapted"]
+    assert records["theta0"]["test_time_adaptation"] == {"adapt": False, "inner_lr": None}
+    assert records["fast"]["test_time_adaptation"] == {"adapt": True, "inner_lr": 0.5}
+    assert "never adapted at test time" in records["theta0"]["protocol_label"]
+    capsys.readouterr()
+    assert main(["compare", str(root / "theta0" / "test.json"), str(root / "adapted" / "test.json")]) == 0
+    assert "A and B took exactly the same actions in" in capsys.readouterr().out
+    # Selection scores checkpoints as trained; untrained baselines have nothing to adapt.
+    assert main([*common, "--no-adapt", "--select", "--out", str(root / "x")]) == 2
+    assert "selection scores each checkpoint as trained" in capsys.readouterr().err
+    assert main(["eval", "random", "--inner-lr", "0.1", "--out", str(root / "x")]) == 2
+    assert "for a trained adaptive model" in capsys.readouterr().err
+
+
 def test_reproduce_and_eval_under_the_reference_protocol(workspace, capsys):
     from mapless.episodes.protocols import PROTOCOLS
 

@@ -61,6 +61,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(faster GCNs on CPUs with BF16)",
     )
     ev.add_argument(
+        "--no-adapt",
+        dest="adapt",
+        action="store_false",
+        help="adaptive models: act with the trained θ_0, never adapted at test time (give another --out)",
+    )
+    ev.add_argument(
+        "--inner-lr",
+        type=float,
+        help="adaptive models: the test-time inner learning rate instead of the trained one (give another --out)",
+    )
+    ev.add_argument(
         "--out",
         type=Path,
         help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
@@ -159,6 +170,11 @@ def _eval(args: argparse.Namespace) -> int:
             "--select chooses a checkpoint on val, so it reports on --split test (or paper); "
             "the val scores of every checkpoint are in the selection table it prints"
         )
+    if args.select and (not args.adapt or args.inner_lr is not None):
+        raise MaplessError(
+            "selection scores each checkpoint as trained; --no-adapt and --inner-lr evaluate one model "
+            "file (or a run's final model) without --select"
+        )
     protocol = _protocol(args)
     eval_split = split_for(protocol.name, args.split) if args.split != "paper" else "paper"
     library = LibrarySpec(offline_dir=str(args.offline_dir) if args.offline_dir else None)
@@ -202,6 +218,8 @@ def _eval(args: argparse.Namespace) -> int:
     if args.select and not path.is_dir():
         raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
     if baseline is not None:
+        if not args.adapt or args.inner_lr is not None:
+            raise MaplessError("--no-adapt and --inner-lr are for a trained adaptive model")
         run, selection, model_file = evaluate(baseline, episodes, settings, library), None, None
     else:  # a trained run, or one model file of it
         select_eps = None
@@ -209,7 +227,15 @@ def _eval(args: argparse.Namespace) -> int:
             select_eps = (
                 episodes if protocol.name == "paper" else load_episodes(protocol.select_split, **sets)
             )
-        done = evaluate_run(path, episodes, settings, library, select_eps, protocol.name, print, report_name)
+        done = evaluate_run(
+            path, episodes, settings, library, select_eps, protocol.name, print, report_name,
+            adapt=args.adapt, inner_lr=args.inner_lr,
+        )  # fmt: skip
+        if not args.adapt or args.inner_lr is not None:
+            meta["test_time_adaptation"] = {"adapt": args.adapt, "inner_lr": args.inner_lr}
+            rule += (
+                f"; test-time inner rate {args.inner_lr:g}" if args.adapt else "; never adapted at test time"
+            )
         run, selection, model_file = done.report, done.selection, done.model_file
     if selection is not None:
         meta["selection"] = selection.summary()

@@ -260,12 +260,20 @@ def evaluate_run(
     progress: Callable[[str], None] | None = None,
     report_name: str | None = None,
     within_minutes: float | None = None,
+    adapt: bool = True,
+    inner_lr: float | None = None,
 ) -> RunEvaluation:
     """How a trained run is evaluated, for ``mapless eval`` and the experiments alike. With
     ``select_episodes``: every checkpoint of the run folder ``path`` on them, the best once on
     ``report_episodes`` (:func:`select_and_report`; ``within_minutes``: among the snapshots of the
     first N training minutes). Without: the run's final model, or the model file ``path``, on
-    ``report_episodes``."""
+    ``report_episodes``, adapted at test time or not (``adapt``) at ``inner_lr`` if given
+    (:class:`~mapless.evaluate.runner.AgentSpec`); selection scores checkpoints as they were trained."""
+    if select_episodes is not None and (not adapt or inner_lr is not None):
+        raise MaplessError(
+            "selection scores each checkpoint as trained; evaluate one model file without test-time "
+            "adaptation or at another inner rate, without selecting"
+        )
     if select_episodes is not None:
         sel = select_and_report(
             path, select_episodes, report_episodes, settings, library, protocol, progress, report_name,
@@ -275,6 +283,5 @@ def evaluate_run(
     from mapless.checkpoint import resolve_model_file
 
     model_file = str(resolve_model_file(path))
-    return RunEvaluation(
-        evaluate(AgentSpec(checkpoint=model_file), report_episodes, settings, library), model_file
-    )
+    spec = AgentSpec(checkpoint=model_file, adapt=adapt, inner_lr=inner_lr)
+    return RunEvaluation(evaluate(spec, report_episodes, settings, library), model_file)
