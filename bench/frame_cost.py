@@ -42,7 +42,7 @@ def build(model: str, overrides: list[str]):
     data["model"] = {"name": model}
     data.update(progress=False, threads=0)
     trainer = PPOTrainer(from_dict(TrainConfig, with_recipe(apply_overrides(data, overrides))), None)
-    trainer._setup(None)
+    trainer.build()
     assert isinstance(trainer.collector, SegmentCollector)
     return trainer
 
@@ -60,7 +60,7 @@ def build_trained(run_dir: Path):
     if config.algo != "ppo":
         raise SystemExit(f"{run_dir}: trained with {config.algo}; this bench times the PPO recipe")
     trainer = PPOTrainer(config, None)
-    trainer._setup(None)
+    trainer.build()
     trainer.model.load_state_dict(payload["model"])
     return trainer
 
@@ -80,7 +80,7 @@ def time_update(trainer, segment) -> float:
                    segment.truncated, segment.bootstrap, ppo.gamma, ppo.lam)  # fmt: skip
     columns = torch.arange(segment.mask.shape[1] // ppo.minibatches)
     start = time.perf_counter()
-    trainer._minibatch_step(segment, columns, adv, ret)
+    trainer.minibatch_step(segment, columns, adv, ret)
     trainer.optimizer.zero_grad(set_to_none=True)
     return float(segment.mask[:, columns].sum()) / (time.perf_counter() - start)
 
@@ -119,7 +119,7 @@ def replay_profile(trainer, segment, rows: int = 12) -> str:
                    segment.truncated, segment.bootstrap, ppo.gamma, ppo.lam)  # fmt: skip
     columns = torch.arange(segment.mask.shape[1] // ppo.minibatches)
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-        trainer._minibatch_step(segment, columns, adv, ret)
+        trainer.minibatch_step(segment, columns, adv, ret)
     trainer.optimizer.zero_grad(set_to_none=True)
     by_name = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
     by_shape = prof.key_averages(group_by_input_shape=True).table(

@@ -98,7 +98,7 @@ def train_and_evaluate(job: tuple[str, list[str], float, float, int, str]) -> di
     config = run_config(run, overrides)
     prepare_scenes(config)
     trainer = (PPOTrainer if config.algo == "ppo" else BatchedTrainer)(config, None)
-    trainer._setup(None)
+    trainer.build()
     library = BuiltinLibrary(config)()
     episodes = val_subset(val_episodes, val_split)
     points = [{"minutes": 0.0, "frames": 0, **evaluate_policy(trainer.model, library, episodes)}]

@@ -40,7 +40,7 @@ def test_a_new_model_registers_trains_and_evaluates(monkeypatch) -> None:
         "target_row", "algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=64"
     )
     trainer = PPOTrainer(config, None, fixture_library)
-    trainer._setup(None)
+    trainer.build()
     assert trainer.obs_keys == ("context", "target_index")  # found by probing what the model reads
     before = [p.detach().clone() for p in trainer.params]
     trainer.update()

@@ -121,7 +121,7 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
         None,
         fixture_library,
     )
-    trainer._setup(None)
+    trainer.build()
     segment = trainer.collector.collect(12 if model == "a3c" else 8, trainer.rng)
     if model == "a3c":
         assert segment.starts[1:].any(), "the fixture's episodes should end inside the segment"
@@ -155,7 +155,7 @@ def test_a_whole_episode_cut_by_the_step_limit_bootstraps_with_its_next_steps_va
             *extra,
         )
         trainer = PPOTrainer(config, None, fixture_library)
-        trainer._setup(None)
+        trainer.build()
         return trainer.collector.collect(max_steps, trainer.rng)
 
     cut = collect(8, "ppo.bootstrap_time_limit=true")
@@ -180,7 +180,7 @@ def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones(model: str
         None,
         fixture_library,
     )
-    trainer._setup(None)
+    trainer.build()
     segment = trainer.collector.collect(8, trainer.rng)
     torch.manual_seed(1)
     weights = torch.randn(8, 3, 6)
@@ -299,7 +299,7 @@ def test_imitation_pulls_the_policy_toward_the_expert() -> None:
         "checkpoint_every=100000",
     )
     trainer = PPOTrainer(config, None, fixture_library)
-    trainer._setup(None)
+    trainer.build()
     losses = [trainer.update()["scalars"]["ppo/imitation_loss"] for _ in range(12)]
     # From chance (log 6 = 1.79 nats) the cross-entropy to the expert falls on the agent's own steps.
     assert losses[0] > 1.6
@@ -317,14 +317,14 @@ def _adaptive_trainer(*overrides: str) -> tuple[PPOTrainer, object]:
         *overrides,
     )
     trainer = PPOTrainer(config, None, fixture_library)
-    trainer._setup(None)
+    trainer.build()
     return trainer, trainer.collector.collect(8, trainer.rng)
 
 
 def _gradients(trainer: PPOTrainer, segment, advantages: torch.Tensor) -> dict[str, torch.Tensor | None]:
     columns = torch.arange(segment.mask.shape[1])
     returns = segment.values + advantages
-    trainer._minibatch_step(segment, columns, advantages, returns)
+    trainer.minibatch_step(segment, columns, advantages, returns)
     return {n: None if p.grad is None else p.grad.clone() for n, p in trainer.model.named_parameters()}
 
 
@@ -377,7 +377,7 @@ def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_p
     never used (no gradient)."""
     config = tiny_config("cvmeta", "algo=ppo", "ppo.envs=4", "ppo.steps=5", "frames=100", "model.adapt=none")
     trainer = PPOTrainer(config, None, fixture_library)
-    trainer._setup(None)
+    trainer.build()
     assert trainer.inner is None and not trainer.model.adaptive
     segment = trainer.collector.collect(5, trainer.rng)
     assert segment.mask.shape[0] == 5

@@ -28,8 +28,9 @@ step (``meta.learned_loss_from_imitation``): φ is meta-trained to stand in for 
 never for the expert's cross-entropy, which no test-time agent has.
 
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
-that acted with the same function under new parameters. The run folder, checkpoints, budget, logs
-and graceful stop are the batched trainer's (:class:`~mapless.train.batched.BatchedTrainer`).
+that acted with the same function under new parameters. The seeds, model, environment, random
+streams, run folder, checkpoints, budget, logs and graceful stop are those of the base it shares
+with the batched A3C trainer, its sibling (:class:`~mapless.train.synchronous.SynchronousTrainer`).
 """
 
 from __future__ import annotations
@@ -41,40 +42,31 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapless.agent.acting import observation_keys
 from mapless.agent.meta import InnerLoop
 from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
-from mapless.train.batched import BatchedTrainer
-from mapless.train.builders import new_model, training_env, training_sampler
-from mapless.train.gradients import trainable
 from mapless.train.monitor import RunMonitor
 from mapless.train.ppo_loss import PPOLoss, gae, ppo_loss
-from mapless.train.runtime import configure_torch, seed_for
 from mapless.train.segments import Segment, SegmentCollector
+from mapless.train.synchronous import SynchronousTrainer
 
 _EPISODE_ROWS = ("success", "spl", "length", "reward")
 _LOSS_KEYS = ("total", "policy", "value", "entropy", "approx_kl", "clip_fraction")
 
 
-class PPOTrainer(BatchedTrainer):
+class PPOTrainer(SynchronousTrainer):
     label = "ppo"
 
     _imitation = 0.0  # this update's imitation weight (ppo.imitation_coef, annealed)
     _imitation_loss = 0.0
 
-    def _setup(self, resume: dict | None) -> None:
-        cfg, rank = self.config, self.ctx.rank
-        configure_torch(cfg.threads)
-        torch.manual_seed(seed_for(cfg, rank))
-        self.rng = np.random.default_rng(seed_for(cfg, 10_000 + rank))
-        self.model = new_model(cfg, self.device).eval()  # dropout off: see the module docstring
-        self.params = trainable(self.model)
+    def _environment_slots(self) -> int:
+        return self.config.ppo.envs
+
+    def _build_algorithm(self) -> None:
+        cfg = self.config
+        self.model.eval()  # dropout off: see the module docstring
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.ppo.lr, eps=cfg.ppo.adam_eps)
-        self.obs_keys = observation_keys(self.model)
-        library = self.library_factory()
-        self.sampler = training_sampler(cfg, library, seed_for(cfg, 20_000 + rank))
-        self.env = training_env(cfg, library, cfg.ppo.envs)
         adaptive = self.model.adaptive
         self.collector = SegmentCollector(
             self.model,
@@ -91,10 +83,6 @@ class PPOTrainer(BatchedTrainer):
         self._learned_loss_params = (
             [named[n] for n in self.model.learned_loss_parameter_names()] if adaptive else []
         )
-        if resume is not None:
-            self._restore(resume)
-        else:
-            dist.broadcast_parameters(self.params, self.ctx)
 
     def _rng_state(self) -> dict:
         return {**super()._rng_state(), "collector": self.collector.state_dict()}
@@ -130,7 +118,7 @@ class PPOTrainer(BatchedTrainer):
         for _ in range(ppo.epochs):
             order = torch.from_numpy(self.rng.permutation(slots)).to(self.device)
             for minibatch in order.chunk(ppo.minibatches):
-                loss = self._minibatch_step(segment, minibatch, advantages, returns)
+                loss = self.minibatch_step(segment, minibatch, advantages, returns)
                 grad_norms.append(self._step())
                 for key in _LOSS_KEYS:
                     sums[key] += float(getattr(loss, key))
@@ -167,10 +155,11 @@ class PPOTrainer(BatchedTrainer):
             return ppo.imitation_coef
         return ppo.imitation_coef * max(1.0 - self.counters["frames"] / ppo.imitation_frames, 0.0)
 
-    def _minibatch_step(
+    def minibatch_step(
         self, segment: Segment, columns: Tensor, advantages: Tensor, returns: Tensor
     ) -> PPOLoss:
-        """Replay the slots ``columns`` with the current parameters and backpropagate PPO's loss."""
+        """Replay the slots ``columns`` with the current parameters and backpropagate PPO's loss
+        into ``.grad`` (the optimizer step is :meth:`update`'s)."""
         ppo = self.config.ppo
         self.optimizer.zero_grad(set_to_none=True)
         mask = segment.mask[:, columns]
