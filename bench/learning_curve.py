@@ -30,7 +30,7 @@ from mapless.episodes.protocols import get_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
 PPO_CONFIG = ROOT / "experiments" / "train_ppo.yaml"
-A3C_TRAIN = {"algo": "a3c", "batch_size": 32, "optim": {"lr": 0.0005}, "frames": 0, "episodes": 10**9}
+A3C_TRAIN = {"algo": "a3c", "a3c": {"batch_size": 32, "lr": 0.0005}, "frames": 0, "episodes": 10**9}
 
 
 def run_config(run: str, overrides: list[str]):

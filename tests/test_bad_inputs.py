@@ -47,17 +47,17 @@ def test_a_config_that_is_not_utf8_is_a_config_error(tmp_path, capsys):
 
 def test_an_unknown_nested_key_is_quoted_whole(tmp_path):
     path = tmp_path / "typo.yaml"
-    path.write_text("optim:\n  learning_rate: 0.1\n")
-    with pytest.raises(ConfigError, match=r"unknown config key 'optim\.learning_rate'; valid keys here: "):
+    path.write_text("a3c:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"unknown config key 'a3c\.learning_rate'; valid keys here: "):
         load_config(TrainConfig, path)
-    path.write_text("optim:\n  1: 0.1\n  lr_: 0.2\n")  # keys of mixed types are still sorted
-    with pytest.raises(ConfigError, match=r"unknown config key 'optim\.1'"):
+    path.write_text("a3c:\n  1: 0.1\n  lr_: 0.2\n")  # keys of mixed types are still sorted
+    with pytest.raises(ConfigError, match=r"unknown config key 'a3c\.1'"):
         load_config(TrainConfig, path)
 
 
 def test_a_missing_offline_root_is_named_and_leaves_no_run_folder(tmp_path, capsys):
     config = tmp_path / "offline.yaml"
-    config.write_text("model:\n  name: mlp\nenv:\n  scenes: FloorPlan1\nepisodes: 16\nbatch_size: 4\n")
+    config.write_text("model:\n  name: mlp\nenv:\n  scenes: FloorPlan1\nepisodes: 16\na3c: {batch_size: 4}\n")
     runs = tmp_path / "runs"
     argv = [
         "train",

@@ -21,7 +21,7 @@ DIVERGING = "env.step_penalty=-1e38"
 TRAINERS = {
     "batched": (),
     "ppo": ("algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=400"),
-    "async": ("mode=async", "workers=2"),
+    "async": ("a3c.mode=async", "a3c.workers=2"),
 }
 
 

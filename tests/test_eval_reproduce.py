@@ -76,7 +76,7 @@ gif: false
 runs_dir: {root / "runs"}
 train:
   episodes: 16
-  batch_size: 8
+  a3c: {{batch_size: 8}}
   checkpoint_every: 8
   log_every: 8
   progress: false

@@ -5,7 +5,11 @@ imitation warm start and every baseline's target_context, the layout-shift exper
 fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
 time-limit bootstrap; on 2026-12-06 the ablation experiment, ``eval.select_per_room`` and the move of
 the models' settings into experiments/recipes/laptop.yaml, which left every run folder where it was:
-tests/data/run_folders.json; then eval.within_minutes and the long budget), and the composition rules."""
+tests/data/run_folders.json; then eval.within_minutes and the long budget; then issue 44's a3c: block,
+by the key mapping alone (mapless.train.config.from_legacy_layout: the same values, checked by a
+one-off script), and its merge of an experiment's train: over the budget's, which gave table2_smoke
+the budget's env.scenes, replaced in each of its runs by the room type's: same runs), and the
+composition rules."""
 
 from __future__ import annotations
 
@@ -56,11 +60,17 @@ def test_figures_share_table1s_runs_folder_and_training() -> None:
         assert getattr(figure3, key) == getattr(table1, key), key
 
 
-def test_an_experiment_key_replaces_the_budgets_key_whole_and_overrides_apply_last(tmp_path: Path) -> None:
+def test_an_experiments_train_merges_into_the_budgets_other_keys_replace_and_overrides_apply_last(
+    tmp_path: Path,
+) -> None:
     path = tmp_path / "table1.yaml"
-    path.write_text("experiment: table1\nbudget: smoke\ntrain: {episodes: 8}\nmodels: [a3c]\n")
+    path.write_text(
+        "experiment: table1\nbudget: smoke\ntrain: {episodes: 8, model: {dropout: 0.1}}\nmodels: [a3c]\n"
+    )
     config = read_experiment(path, ["eval.per_room=2"])
-    assert config.train == {"episodes": 8}  # not merged with the budget's training block
+    budget = read_budget("smoke")["train"]
+    # train: key by key over the budget's, nested mappings included
+    assert config.train == {**budget, "episodes": 8, "model": {"hidden_size": 128, "dropout": 0.1}}
     assert config.eval.per_room == 2 and config.eval.batch_size == 16  # the rest of smoke's eval
     assert config.runs_dir == "runs/experiments/smoke"
 
@@ -138,8 +148,9 @@ def test_an_experiment_that_only_renames_another_is_an_alias() -> None:
         (e, b): {**to_dict(read_experiment(config_path(e, b))), "experiment": None} for e, b in SHIPPED
     }
     pairs = [(a, b) for a in SHIPPED for b in SHIPPED if a < b and resolved[a] == resolved[b]]
-    # figure3 = table1 (full); figure3 = figures45 = table1 (small: three pairs); figure3 = figures45 (smoke)
-    assert len(pairs) == 5
+    # figure3 = table1 (full); figure3 = figures45 = table1 (small: three pairs); figure3 = figures45
+    # (smoke); table2 = table3 (smoke, since an experiment's train: merges into the budget's)
+    assert len(pairs) == 6
     for pair in pairs:
         aliases = [p for p in pair if set(read_mapping(config_path(*p))) == {"extends", "experiment"}]
         assert aliases, f"{pair}: the same configuration written twice; make one `extends:` the other"

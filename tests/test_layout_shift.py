@@ -156,7 +156,7 @@ runs_dir: {root / "runs"}
 variant_layouts: {{source: gen, fraction: 1.0, per_scene: 1}}
 train:
   episodes: 8
-  batch_size: 4
+  a3c: {{batch_size: 4}}
   checkpoint_every: 8
   log_every: 8
   progress: false

@@ -4,7 +4,6 @@ exact resume of a PPO run."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -229,7 +228,7 @@ def test_ppo_run_resumes_exactly(tmp_path: Path, model: str) -> None:
         ("ppo.minibatches=8", "at least as many slots"),
         ("ppo.lr=nan", "ppo.lr"),
         ("ppo.lam=1.5", "ppo.lam"),
-        ("mode=async", "batched mode"),
+        ("a3c.mode=async", r"a3c\.mode.*algo is ppo"),
         ("precision=bf16", "ppo trains in float32"),
     ],
 )
@@ -238,23 +237,24 @@ def test_impossible_ppo_settings_are_clear_errors(override: str, message: str) -
         tiny_config("a3c", "algo=ppo", "ppo.envs=4", override)
 
 
-def test_a3c_settings_under_ppo_warn_with_the_key_ppo_reads() -> None:
-    with pytest.warns(UserWarning, match=r"loss\.gamma \(PPO reads ppo\.gamma\), optim\.amsgrad"):
-        tiny_config("a3c", "algo=ppo", "ppo.envs=4", "loss.gamma=0.9", "optim.amsgrad=false")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        tiny_config("a3c", "algo=ppo", "ppo.envs=4")  # defaults: nothing to warn about
-        tiny_config("a3c", "loss.gamma=0.9")  # A3C reads it
+def test_only_the_chosen_algorithms_block_may_be_set() -> None:
+    message = r"config key 'a3c\.amsgrad': algo is ppo, which reads only the ppo: block; remove the a3c: settings \(amsgrad, gamma\) or set algo: a3c"
+    with pytest.raises(ConfigError, match=message):
+        tiny_config("a3c", "algo=ppo", "ppo.envs=4", "a3c.gamma=0.9", "a3c.amsgrad=false")
+    with pytest.raises(ConfigError, match=r"config key 'ppo\.gamma': algo is a3c, .* or set algo: ppo"):
+        tiny_config("a3c", "ppo.gamma=0.9")
+    tiny_config("a3c", "algo=ppo", "ppo.envs=4", "ppo.gamma=0.9")  # each reads its own block
+    tiny_config("a3c", "a3c.gamma=0.9")
 
 
 @pytest.mark.parametrize(
     "override",
     [
-        "optim.lr=inf",
-        "optim.lr=1e30",
+        "a3c.lr=inf",
+        "a3c.lr=1e30",
         "env.step_penalty=nan",
         "env.success_reward=inf",
-        "loss.value_coef=inf",
+        "a3c.value_coef=inf",
         "ppo.lr=inf",
     ],
 )

@@ -19,7 +19,7 @@ from mapless.train.runtime import seed_for
 
 
 def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:
-    config = tiny_config("a3c", "mode=async", "workers=2", "episodes=12", "checkpoint_every=6")
+    config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=12", "checkpoint_every=6")
     summary = AsyncTrainer(config, tmp_path, fixture_library).run()
     assert summary["episodes"] == 12 and summary["updates"] == 12
     state = ckpt.load_file(tmp_path / ckpt.CHECKPOINT_FILE)
@@ -34,7 +34,7 @@ def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:
 
 
 def test_killed_worker_is_reported_and_the_run_stops(tmp_path: Path) -> None:
-    config = tiny_config("a3c", "mode=async", "workers=2", "episodes=1000000000")
+    config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=1000000000")
     trainer = AsyncTrainer(config, tmp_path, fixture_library)
     outcome: dict[str, BaseException] = {}
 
@@ -67,7 +67,7 @@ def broken_library():
 
 
 def test_a_failing_worker_reports_its_traceback(tmp_path: Path) -> None:
-    config = tiny_config("a3c", "mode=async", "workers=2", "episodes=1000000000")
+    config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=1000000000")
     with pytest.raises(WorkerError, match="RuntimeError: the scene files are unreadable"):
         AsyncTrainer(config, tmp_path, broken_library).run()
 
@@ -75,7 +75,7 @@ def test_a_failing_worker_reports_its_traceback(tmp_path: Path) -> None:
 def test_async_refuses_cuda(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
     with pytest.raises(Exception, match="async"):
-        AsyncTrainer(tiny_config("a3c", "mode=async", "device=cuda"), None)
+        AsyncTrainer(tiny_config("a3c", "a3c.mode=async", "device=cuda"), None)
 
 
 @pytest.mark.parametrize(

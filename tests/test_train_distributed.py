@@ -37,7 +37,7 @@ def _as_torchrun_would(rank: int, port: int) -> None:
 
 def _rank(rank: int, port: int, out: str) -> None:
     _as_torchrun_would(rank, port)
-    config = tiny_config("savn", "batch_size=2", f"episodes={3 * 2 * WORLD}", "checkpoint_every=4")
+    config = tiny_config("savn", "a3c.batch_size=2", f"episodes={3 * 2 * WORLD}", "checkpoint_every=4")
     ctx = dist.init_distributed(config.device)
     try:
         trainer = BatchedTrainer(config, Path(out) / "run", fixture_library, ctx)
@@ -97,7 +97,9 @@ def _diverging_rank(rank: int, port: int, out: str) -> None:
     _as_torchrun_would(rank, port)
     # Only rank 1's episodes diverge (a finite but absurd penalty: the value loss overflows, the
     # gradient becomes NaN): the all-reduced gradient carries its NaN to rank 0.
-    config = tiny_config("a3c", "batch_size=2", "episodes=400", *(["env.step_penalty=-1e38"] if rank else []))
+    config = tiny_config(
+        "a3c", "a3c.batch_size=2", "episodes=400", *(["env.step_penalty=-1e38"] if rank else [])
+    )
     ctx = dist.init_distributed(config.device)
     try:
         BatchedTrainer(config, Path(out) / "run", fixture_library, ctx).run()

@@ -70,7 +70,7 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
         actor = make_actor(model, first_order)
         model.zero_grad(set_to_none=True)
         trajectory = run_batch(actor, single_env, [episode], noise[b : b + 1], keys, CPU)
-        single_losses.append(accumulate_gradients(actor, trajectory, config.loss).total.detach()[0])
+        single_losses.append(accumulate_gradients(actor, trajectory, config.a3c).total.detach()[0])
         single_grads.append(_grads(model))
         lengths.append(int(trajectory.length[0]))
 
@@ -88,7 +88,7 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
         assert any(not torch.equal(w, theta0[n].expand_as(w)) for n, w in actor.state.fast.items()), (
             "the inner steps should have moved the fast weights"
         )
-    losses = episode_losses(trajectory, config.loss)
+    losses = episode_losses(trajectory, config.a3c)
     torch.testing.assert_close(losses.total.detach(), torch.stack(single_losses), rtol=1e-4, atol=1e-5)
 
     if not first_order:  # per-episode gradients straight from the batched graph
@@ -128,7 +128,7 @@ def test_bf16_precision_gives_nearly_the_float32_gradient(name: str) -> None:
             assert actor.memo.requested_rows >= trajectory.frames
         else:
             assert actor.memo.requested_rows == 0
-        losses = accumulate_gradients(actor, trajectory, config.loss)
+        losses = accumulate_gradients(actor, trajectory, config.a3c)
         runs[precision] = (trajectory, losses.total.detach(), torch.cat([g.flatten() for g in _grads(model)]))
     (exact, exact_loss, exact_grad), (low, low_loss, low_grad) = runs["fp32"], runs["bf16"]
     assert torch.equal(low.actions, exact.actions)

@@ -102,7 +102,7 @@ def test_gradient_clipping_as_the_references(model: str, clipped: bool) -> None:
     assert count > 100**2  # an all-ones gradient then has a norm above the limit
     assert clip_gradients(net, config) == pytest.approx(count**0.5, rel=1e-5)
     after = torch.cat([p.grad.flatten() for p in net.parameters()]).norm()
-    assert float(after) == pytest.approx(config.optim.grad_clip if clipped else count**0.5, rel=1e-3)
+    assert float(after) == pytest.approx(config.a3c.grad_clip if clipped else count**0.5, rel=1e-3)
 
 
 def test_trainers_keep_more_compiled_bf16_kernels_unless_the_user_chose(monkeypatch) -> None:
@@ -117,7 +117,7 @@ def test_trainers_keep_more_compiled_bf16_kernels_unless_the_user_chose(monkeypa
 
 def test_the_last_partial_log_interval_is_written(tmp_path: Path) -> None:
     train(
-        tiny_config("a3c", "batch_size=2", "episodes=6", "log_every=4"),
+        tiny_config("a3c", "a3c.batch_size=2", "episodes=6", "log_every=4"),
         tmp_path,
         library_factory=fixture_library,
     )
@@ -149,7 +149,7 @@ def test_ctrl_c_checkpoints_but_adds_no_snapshot_off_the_schedule(
         self.requested = True
         return self
 
-    config = tiny_config("a3c", "episodes=16", "batch_size=8", f"checkpoint_every={every}")
+    config = tiny_config("a3c", "episodes=16", "a3c.batch_size=8", f"checkpoint_every={every}")
     monkeypatch.setattr(GracefulStop, "__enter__", ctrl_c_at_once)
     assert train(config, tmp_path, library_factory=fixture_library)["stopped_early"]
     assert _state(tmp_path)["counters"]["episodes"] == 8
@@ -183,8 +183,12 @@ def test_ctrl_c_and_resume_log_the_curves_of_a_straight_run(
     after it; metrics.jsonl and TensorBoard hold what the uninterrupted run logs."""
     from mapless.train.runtime import GracefulStop
 
-    extra = ["algo=ppo", "ppo.envs=2", "ppo.steps=4", "ppo.minibatches=1"] if algo == "ppo" else []
-    config = tiny_config("a3c", "batch_size=2", "episodes=12", "log_every=4", "checkpoint_every=8", *extra)
+    extra = (
+        ["algo=ppo", "ppo.envs=2", "ppo.steps=4", "ppo.minibatches=1"]
+        if algo == "ppo"
+        else ["a3c.batch_size=2"]
+    )
+    config = tiny_config("a3c", "episodes=12", "log_every=4", "checkpoint_every=8", *extra)
     straight, stopped = tmp_path / "straight", tmp_path / "stopped"
     train(config, straight, library_factory=fixture_library)
     enter = GracefulStop.__enter__
@@ -212,14 +216,14 @@ def test_ctrl_c_and_resume_log_the_curves_of_a_straight_run(
     ("override", "message"),
     [
         ("model.name=resnet9000", "model.name"),
-        ("optim.lr=-1e-4", "optim.lr"),
+        ("a3c.lr=-1e-4", "a3c.lr"),
         ("env.scenes=FloorPlan999", "env.scenes"),
         ("env.scenes=nosuchsplit", "env.scenes"),
         ("episodes=0", "episodes"),
-        ("batch_size=0", "batch_size"),
-        ("mode=sync", "mode"),
+        ("a3c.batch_size=0", "a3c.batch_size"),
+        ("a3c.mode=sync", "a3c.mode"),
         ("precision=fp16", "precision"),
-        ("optim.learning_rate=1", "learning_rate"),
+        ("a3c.learning_rate=1", "learning_rate"),
     ],
 )
 def test_bad_config_is_a_clear_error(override: str, message: str) -> None:
@@ -229,10 +233,10 @@ def test_bad_config_is_a_clear_error(override: str, message: str) -> None:
 
 def test_cli_reports_bad_config_before_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = tmp_path / "bad.yaml"
-    config.write_text(yaml.safe_dump({"model": {"name": "a3c"}, "episodes": 10, "optim": {"lr": -1}}))
+    config.write_text(yaml.safe_dump({"model": {"name": "a3c"}, "episodes": 10, "a3c": {"lr": -1}}))
     assert cli_main(["train", str(config), "--run-dir", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert "optim.lr" in err and "Traceback" not in err
+    assert "a3c.lr" in err and "Traceback" not in err
     assert not (tmp_path / "run").exists()
     assert cli_main(["train", "--resume", str(tmp_path / "nothing")]) == 2
     assert "no checkpoint" in capsys.readouterr().err
@@ -246,7 +250,7 @@ def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.Ca
             {
                 "model": {"name": "cvmeta", "hidden_size": 16, "fusion_channels": 2},
                 "env": {"scenes": "FloorPlan401"},  # built once into the session's test cache
-                "batch_size": 4,
+                "a3c": {"batch_size": 4},
                 "episodes": 8,
                 "checkpoint_every": 8,
                 "log_every": 4,
@@ -288,7 +292,7 @@ def test_sigint_stops_at_a_checkpoint_and_sigkill_loses_only_the_work_since_the_
     resume command; SIGKILL mid-run leaves the last checkpoint whole; `--resume` then finishes."""
     config = tmp_path / "train.yaml"
     budget = {"model": {"name": "a3c", "hidden_size": 16}, "env": {"scenes": "FloorPlan401"},
-              "batch_size": 4, "episodes": 1_000_000, "checkpoint_every": 8, "log_every": 4,
+              "a3c": {"batch_size": 4}, "episodes": 1_000_000, "checkpoint_every": 8, "log_every": 4,
               "threads": 1, "progress": False}  # fmt: skip
     config.write_text(yaml.safe_dump(budget))
     run_dir, state = tmp_path / "run", tmp_path / "run" / ckpt.CHECKPOINT_FILE
@@ -351,7 +355,7 @@ def test_a_run_folder_in_use_refuses_a_second_trainer(tmp_path: Path) -> None:
     assert (run / ckpt.FINAL_MODEL_FILE).is_file()
 
 
-@pytest.mark.parametrize("override", ["seed=7", "model.hidden_size=8", "algo=ppo", "batch_size=2"])
+@pytest.mark.parametrize("override", ["seed=7", "model.hidden_size=8", "algo=ppo", "a3c.batch_size=2"])
 def test_resume_refuses_settings_the_checkpoint_depends_on(tmp_path: Path, override: str) -> None:
     run = tmp_path / "run"
     train(tiny_config("a3c", "episodes=4"), run, library_factory=fixture_library)
@@ -386,7 +390,7 @@ def _alive(pid: int) -> bool:
 def test_async_workers_do_not_outlive_a_killed_trainer(tmp_path: Path) -> None:
     config = tmp_path / "train.yaml"
     budget = {"model": {"name": "a3c", "hidden_size": 16}, "env": {"scenes": "FloorPlan401"},
-              "mode": "async", "workers": 2, "episodes": 1_000_000, "checkpoint_every": 8,
+              "a3c": {"mode": "async", "workers": 2}, "episodes": 1_000_000, "checkpoint_every": 8,
               "log_every": 4, "progress": False}  # fmt: skip
     config.write_text(yaml.safe_dump(budget))
     run_dir = tmp_path / "run"

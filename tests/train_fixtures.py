@@ -24,11 +24,12 @@ def fixture_library() -> SceneLibrary:
 
 
 def tiny_config(model: str = "a3c", *overrides: str) -> TrainConfig:
+    # The small A3C batch is the A3C runs' only: a PPO run may not set the a3c: block.
+    a3c = {} if "algo=ppo" in overrides else {"a3c": {"batch_size": 4}}
     base = {
         "model": {"name": model, "hidden_size": 16, "fusion_channels": 2, "dropout": 0.0},
         "env": {"scenes": SCENES, "max_steps": 8},
-        "batch_size": 4,
-        "workers": 2,
+        **a3c,
         "episodes": 8,
         "checkpoint_every": 4,
         "log_every": 4,

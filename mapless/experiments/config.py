@@ -4,8 +4,9 @@
 
 A budget file holds what every experiment of that budget shares (training and evaluation
 settings, seeds, runs folder, Table 1's model lineup); an experiment file names its budget and holds
-only what differs from it. Each top-level key the experiment file sets replaces the budget's key of
-that name as a whole (``train:`` in an experiment file is its whole training block), which keeps
+only what differs from it. The experiment file's ``train:`` is read over the budget's key by key,
+nested mappings included (an experiment changes a budget's training settings by naming only those);
+every other top-level key it sets replaces the budget's key of that name as a whole, which keeps
 what a run gets readable from two files; ``--set`` overrides apply last."""
 
 from __future__ import annotations
@@ -197,11 +198,14 @@ def budget_path(budget: str) -> Path:
 
 def read_experiment(path: Path, overrides: list[str] | None = None) -> ExperimentConfig:
     """The experiment file at ``path`` read over the file of the budget it names (a file naming no
-    budget stands alone), then ``overrides``. The runs' training configs are not checked here
+    budget stands alone), then ``overrides``: ``train:`` key by key over the budget's, the other
+    top-level keys replacing the budget's. The runs' training configs are not checked here
     (:func:`load_experiment` does)."""
     data = _experiment_mapping(path)
     if "budget" in data:
-        data = {**read_budget(data["budget"]), **data}
+        budget = read_budget(data["budget"])
+        train = merge_mappings(budget.get("train") or {}, data.get("train") or {})
+        data = {**budget, **data, **({"train": train} if train else {})}
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
 
 

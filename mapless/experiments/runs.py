@@ -14,12 +14,15 @@ from pathlib import Path
 from mapless.config import to_dict
 from mapless.experiments.config import ExperimentConfig
 from mapless.models.registry import MODELS
+from mapless.train.config import to_legacy_layout
 
 
 def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
     (the progress bar aside), so experiments with an identical run share it."""
-    data = to_dict(dataclasses.replace(train_cfg, progress=False))
+    # The hash reads the layout the runs were made in (the A3C settings as optim:, loss: and three
+    # top-level keys, before issue 44 gathered them into a3c:): the same values, the same folders.
+    data = to_legacy_layout(to_dict(dataclasses.replace(train_cfg, progress=False)))
     # Keys added after runs were made are hashed only where they change training, so that finished
     # runs whose training they do not change keep their folders.
     for path, changes_training in _LATER_KEYS:

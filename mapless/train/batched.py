@@ -34,22 +34,22 @@ class BatchedTrainer(SynchronousTrainer):
     label = "batched"  # the progress bar's name for the trainer
 
     def _environment_slots(self) -> int:
-        return self.config.batch_size
+        return self.config.a3c.batch_size
 
     def _build_algorithm(self) -> None:
         cfg = self.config
         self.actor = make_actor(self.model, first_order=cfg.meta.first_order, precision=cfg.precision)
-        self.optimizer = SharedAdam.from_config(self.params, cfg.optim)
+        self.optimizer = SharedAdam.from_config(self.params, cfg.a3c)
 
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> dict[str, Any]:
         """One batch of episodes and one optimizer step; returns this rank's statistics."""
         cfg = self.config
-        episodes = [self.sampler.sample(self.rng) for _ in range(cfg.batch_size)]
-        noise = self.rng.random((cfg.batch_size, cfg.env.max_steps))
+        episodes = [self.sampler.sample(self.rng) for _ in range(cfg.a3c.batch_size)]
+        noise = self.rng.random((cfg.a3c.batch_size, cfg.env.max_steps))
         self.optimizer.zero_grad(set_to_none=True)
         trajectory = run_batch(self.actor, self.env, episodes, noise, self.obs_keys, self.device)
-        losses = accumulate_gradients(self.actor, trajectory, cfg.loss)
+        losses = accumulate_gradients(self.actor, trajectory, cfg.a3c)
         fill_missing_gradients(self.model)
         dist.all_reduce_gradients(self.params, self.ctx)
         grad_norm = clip_gradients(self.model, cfg)

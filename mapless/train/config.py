@@ -7,10 +7,10 @@ loaded or any worker is started.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import re
-import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -162,13 +162,20 @@ class EnvConfig:
 
 
 @dataclass(frozen=True)
-class OptimConfig:
-    """SharedAdam of the references: lr 1e-4, betas (0.9, 0.999), eps 1e-3, AMSGrad.
+class A3CConfig:
+    """The references' A3C (``algo: a3c``): how it runs, SharedAdam's constants (lr 1e-4, betas
+    (0.9, 0.999), eps 1e-3, AMSGrad) and the loss constants (γ, τ, entropy β, value coefficient).
 
+    mode: ``batched`` (``batch_size`` episodes in lockstep, one update per batch, per rank under
+        torchrun) or ``async`` (the references' Hogwild A3C: ``workers`` processes, one update per
+        episode, shared AMSGrad Adam).
     grad_clip: max gradient norm of non-adaptive models (the references clip at 100); 0 = off.
     meta_grad_clip: the same for adaptive models (SAVN applies none: 0).
     """
 
+    mode: Literal["batched", "async"] = "batched"
+    batch_size: int = 32
+    workers: int = 2
     lr: float = 1e-4
     beta1: float = 0.9
     beta2: float = 0.999
@@ -176,34 +183,27 @@ class OptimConfig:
     amsgrad: bool = True
     grad_clip: float = 100.0
     meta_grad_clip: float = 0.0
-
-    def __post_init__(self) -> None:
-        _require(_finite(self.lr) and 0 < self.lr <= 1, "optim.lr", f"must lie in (0, 1], got {self.lr}")
-        _require(
-            _finite(self.grad_clip) and _finite(self.meta_grad_clip), "optim.grad_clip", "must be finite"
-        )
-        _require(0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "optim.beta1/beta2", "must lie in [0, 1)")
-        _require(self.eps > 0, "optim.eps", f"must be positive, got {self.eps}")
-        _require(self.grad_clip >= 0, "optim.grad_clip", f"must be >= 0 (0 = off), got {self.grad_clip}")
-        _require(self.meta_grad_clip >= 0, "optim.meta_grad_clip", f"must be >= 0, got {self.meta_grad_clip}")
-
-
-@dataclass(frozen=True)
-class LossConfig:
-    """A3C loss constants (γ, τ, entropy β, value coefficient) of the references."""
-
     gamma: float = 0.99
     tau: float = 1.0
     beta: float = 0.01
     value_coef: float = 0.5
 
     def __post_init__(self) -> None:
-        _require(0 < self.gamma <= 1, "loss.gamma", f"must lie in (0, 1], got {self.gamma}")
-        _require(0 <= self.tau <= 1, "loss.tau", f"must lie in [0, 1], got {self.tau}")
-        _require(self.beta >= 0, "loss.beta", f"must be >= 0, got {self.beta}")
-        _require(self.value_coef >= 0, "loss.value_coef", f"must be >= 0, got {self.value_coef}")
-        for key in ("beta", "value_coef"):
-            _require(_finite(getattr(self, key)), f"loss.{key}", f"must be finite, got {getattr(self, key)}")
+        _require(
+            self.mode in ("batched", "async"), "a3c.mode", f"must be batched or async, got {self.mode!r}"
+        )
+        _require(self.batch_size >= 1, "a3c.batch_size", f"must be >= 1, got {self.batch_size}")
+        _require(self.workers >= 1, "a3c.workers", f"must be >= 1, got {self.workers}")
+        _require(_finite(self.lr) and 0 < self.lr <= 1, "a3c.lr", f"must lie in (0, 1], got {self.lr}")
+        _require(0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "a3c.beta1/beta2", "must lie in [0, 1)")
+        _require(self.eps > 0, "a3c.eps", f"must be positive, got {self.eps}")
+        for key in ("grad_clip", "meta_grad_clip", "beta", "value_coef"):
+            value = getattr(self, key)
+            _require(
+                _finite(value) and value >= 0, f"a3c.{key}", f"must be finite and >= 0 (0 = off), got {value}"
+            )
+        _require(0 < self.gamma <= 1, "a3c.gamma", f"must lie in (0, 1], got {self.gamma}")
+        _require(0 <= self.tau <= 1, "a3c.tau", f"must lie in [0, 1], got {self.tau}")
 
 
 #: The steps the outer loss of adaptive models reads (:attr:`MetaConfig.navigation_loss`).
@@ -302,21 +302,77 @@ class PPOConfig:
         _require(0 <= self.lam <= 1, "ppo.lam", f"must lie in [0, 1], got {self.lam}")
 
 
-#: The PPO constant that plays each A3C constant's part.
-_PPO_COUNTERPARTS = {
-    "loss.gamma": "ppo.gamma",
-    "loss.tau": "ppo.lam",
-    "loss.beta": "ppo.entropy_coef",
-    "loss.value_coef": "ppo.value_coef",
-    "optim.lr": "ppo.lr",
-    "optim.eps": "ppo.adam_eps",
-    "optim.grad_clip": "ppo.max_grad_norm",
-    "optim.meta_grad_clip": "ppo.max_grad_norm",
-}
-
-
 def _finite(value: float) -> bool:
     return math.isfinite(value)
+
+
+def _changed_keys(block: object) -> list[str]:
+    """The fields of a settings block that differ from its defaults."""
+    default = type(block)()
+    return [f.name for f in dataclasses.fields(block) if getattr(block, f.name) != getattr(default, f.name)]
+
+
+#: Where each training-config key of the layout before issue 44 lives now (old path, new path): the
+#: A3C settings, once the ``optim:`` and ``loss:`` blocks and three top-level keys, are ``a3c:``.
+LEGACY_KEYS: tuple[tuple[str, str], ...] = (
+    *(
+        (f"optim.{k}", f"a3c.{k}")
+        for k in ("lr", "beta1", "beta2", "eps", "amsgrad", "grad_clip", "meta_grad_clip")
+    ),
+    *((f"loss.{k}", f"a3c.{k}") for k in ("gamma", "tau", "beta", "value_coef")),
+    *((k, f"a3c.{k}") for k in ("mode", "batch_size", "workers")),
+)
+
+
+def _has_path(data: dict, path: str) -> bool:
+    *sections, key = path.split(".")
+    for section in sections:
+        data = data.get(section)
+        if not isinstance(data, dict):
+            return False
+    return key in data
+
+
+def _move_keys(data: dict, moves: list[tuple[str, str]]) -> dict:
+    """``data`` (not modified) with the value at each ``old`` path moved to its ``new`` path; a
+    section emptied by the moves is dropped (the layout it belonged to has no such section)."""
+    out = copy.deepcopy(data)
+    emptied = set()
+    for old, new in moves:
+        if not _has_path(out, old):
+            continue
+        *sections, key = old.split(".")
+        node = out
+        for section in sections:
+            node = node[section]
+        value = node.pop(key)
+        if sections and not node:
+            emptied.add(tuple(sections))
+        *sections, key = new.split(".")
+        node = out
+        for section in sections:
+            node = node.setdefault(section, {})
+        node[key] = value
+    for sections in sorted(emptied, key=len, reverse=True):
+        *parents, last = sections
+        node = out
+        for section in parents:
+            node = node[section]
+        if not node[last]:
+            del node[last]
+    return out
+
+
+def from_legacy_layout(data: dict) -> dict:
+    """A training-config mapping of the layout before issue 44 in today's layout (same values)."""
+    return _move_keys(data, list(LEGACY_KEYS))
+
+
+def to_legacy_layout(data: dict) -> dict:
+    """A training-config mapping (``to_dict`` of a :class:`TrainConfig`) in the layout before issue 44,
+    which the run-folder hash reads (:func:`mapless.experiments.runs.run_dir_for`) so that every run
+    keeps its folder."""
+    return _move_keys(data, [(new, old) for old, new in LEGACY_KEYS])
 
 
 @dataclass(frozen=True)
@@ -326,21 +382,14 @@ class TrainConfig:
 
     model: ModelConfig = field(default_factory=ModelConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
     meta: MetaConfig = field(default_factory=MetaConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    a3c: A3CConfig = field(default_factory=A3CConfig)
 
     algo: Literal["a3c", "ppo"] = "a3c"
-    """``ppo`` (recurrent PPO, :class:`PPOConfig`; batched mode) or ``a3c`` (the references' recipe:
-    one A3C step per batch of whole episodes, or per episode in async mode)."""
-    mode: Literal["batched", "async"] = "batched"
-    """``batched`` (B episodes in lockstep, one update per batch) or ``async`` (the references'
-    Hogwild A3C: ``workers`` processes, one update per episode, shared AMSGrad Adam)."""
-    batch_size: int = 32
-    """Episodes per update in batched mode (per rank under torchrun)."""
-    workers: int = 2
-    """Worker processes in async mode."""
+    """``ppo`` (recurrent PPO, :class:`PPOConfig`; batched mode) or ``a3c`` (the references' recipe,
+    :class:`A3CConfig`: one A3C step per batch of whole episodes, or per episode in async mode).
+    Only the chosen algorithm's block may differ from its defaults."""
 
     episodes: int = 0
     """The budget in episodes; training stops when it or ``frames`` is reached (0 = no limit on this
@@ -377,8 +426,6 @@ class TrainConfig:
                 f"config key 'model.name': unknown model {self.model.name!r}; valid models: {', '.join(MODELS)}"
             )
         _require(self.model.name != "random", "model.name", "the random agent has nothing to train")
-        _require(self.batch_size >= 1, "batch_size", f"must be >= 1, got {self.batch_size}")
-        _require(self.workers >= 1, "workers", f"must be >= 1, got {self.workers}")
         _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
         _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
         _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
@@ -392,13 +439,16 @@ class TrainConfig:
         _require(
             self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
         )
-        _require(self.mode in ("batched", "async"), "mode", f"must be batched or async, got {self.mode!r}")
         _require(self.algo in ("a3c", "ppo"), "algo", f"must be a3c or ppo, got {self.algo!r}")
-        _require(
-            self.algo == "a3c" or self.mode == "batched",
-            "algo",
-            "ppo runs in batched mode (the Hogwild async mode is the references' A3C)",
-        )
+        other = "ppo" if self.algo == "a3c" else "a3c"
+        if changed := _changed_keys(getattr(self, other)):
+            # An error, not a warning: a setting the run's algorithm never reads would be recorded in
+            # its config (and its run-folder hash) as if it had trained with it.
+            raise ConfigError(
+                f"config key '{other}.{changed[0]}': algo is {self.algo}, which reads only the "
+                f"{self.algo}: block; remove the {other}: settings ({', '.join(changed)}) "
+                f"or set algo: {other}"
+            )
         _require(
             self.algo == "a3c" or self.precision == "fp32",
             "precision",
@@ -424,25 +474,28 @@ class TrainConfig:
             "model.category_set",
             f"{self.model.category_set!r} differs from env.sim.category_set {self.env.sim.category_set!r}",
         )
-        if self.algo == "ppo" and (ignored := self.a3c_only_settings()):
-            # A warning, not an error: `--set algo=ppo` over a config written for A3C should still run.
-            warnings.warn(
-                "algo ppo reads its own constants (ppo.*); these A3C settings change nothing: "
-                + ", ".join(ignored),
-                stacklevel=3,
-            )
 
-    def a3c_only_settings(self) -> list[str]:
-        """The ``loss.*`` and ``optim.*`` keys set away from their defaults, each with the key PPO
-        reads instead where there is one (``loss.gamma -> ppo.gamma``)."""
-        changed = []
-        for section, default in (("loss", LossConfig()), ("optim", OptimConfig())):
-            for f in dataclasses.fields(default):
-                if getattr(getattr(self, section), f.name) != getattr(default, f.name):
-                    key = f"{section}.{f.name}"
-                    counterpart = _PPO_COUNTERPARTS.get(key)
-                    changed.append(f"{key} (PPO reads {counterpart})" if counterpart else key)
-        return changed
+    @property
+    def mode(self) -> str:
+        """How the run trains: ``a3c.mode`` under A3C; PPO always runs batched."""
+        return self.a3c.mode if self.algo == "a3c" else "batched"
+
+    @staticmethod
+    def upgrade_stored(data: dict) -> dict:
+        """A config stored before issue 44 (checkpoints, model files) read into today's layout."""
+        return from_legacy_layout(data)
+
+    @staticmethod
+    def check_mapping(data: dict, prefix: str = "") -> None:
+        """Refuses a key of the layout before issue 44, saying where it lives now
+        (:func:`mapless.config.from_dict` calls this before it reads the fields)."""
+        for old, new in LEGACY_KEYS:
+            if _has_path(data, old):
+                raise ConfigError(
+                    f"config key {prefix + old!r} has moved to {prefix + new!r}: the A3C settings "
+                    f"(the former optim: and loss: blocks, mode, batch_size, workers) are one a3c: block "
+                    f'beside ppo: (docs/training.md, "Configuration"); write it there'
+                )
 
     @property
     def parent_reward(self) -> bool:

@@ -15,7 +15,7 @@ def clip_gradients(model: NavModel, config: TrainConfig) -> float:
     """The references clip non-adaptive models at norm 100 and leave SAVN's meta-gradient alone.
     Returns the gradient's L2 norm before clipping, whether clipping is on or not (it is logged:
     a policy that collapses often does so right after a large step)."""
-    limit = config.optim.meta_grad_clip if model.adaptive else config.optim.grad_clip
+    limit = config.a3c.meta_grad_clip if model.adaptive else config.a3c.grad_clip
     params = [p for p in model.parameters() if p.grad is not None]
     if not params:
         return 0.0

@@ -86,7 +86,7 @@ def _worker(
         actor = make_actor(local, first_order=config.meta.first_order, precision=config.precision)
         keys = observation_keys(local)
         shared_params, local_params = trainable(shared_model), trainable(local)
-        optimizer = SharedAdam.from_config(shared_params, config.optim)
+        optimizer = SharedAdam.from_config(shared_params, config.a3c)
         for p, state in zip(shared_params, shared_states, strict=True):
             optimizer.state[p] = state  # the shared moments and step counters
         while not stop.is_set():
@@ -97,7 +97,7 @@ def _worker(
             noise = rng.random((1, config.env.max_steps))
             local.zero_grad(set_to_none=True)
             trajectory = run_batch(actor, env, [episode], noise, keys, device)
-            losses = accumulate_gradients(actor, trajectory, config.loss)
+            losses = accumulate_gradients(actor, trajectory, config.a3c)
             fill_missing_gradients(local)
             grad_norm = clip_gradients(local, config)
             try:
@@ -140,7 +140,7 @@ class AsyncTrainer(TrainingLoop):
         self, config: TrainConfig, run_dir: Path | None, library_factory: LibraryFactory | None = None
     ):
         if config.device != "cpu":
-            raise MaplessError("async mode runs its workers on the CPU; use mode=batched for device=cuda")
+            raise MaplessError("async mode runs its workers on the CPU; use a3c.mode=batched for device=cuda")
         super().__init__(config, run_dir)
         self.library_factory = library_factory or BuiltinLibrary(config)
         self.workers: list[Any] = []
@@ -150,7 +150,7 @@ class AsyncTrainer(TrainingLoop):
         configure_torch(cfg.threads)
         torch.manual_seed(seed_for(cfg, 0))
         self.model = new_model(cfg)
-        self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.optim)
+        self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.a3c)
         if resume is not None:
             self.model.load_state_dict(resume["model"])
             self.optimizer.load_state_dict(resume["optimizer"])
@@ -166,7 +166,7 @@ class AsyncTrainer(TrainingLoop):
         self.stop = context.Event()
         states = [self.optimizer.state[p] for p in trainable(self.model)]
         segment = self.counters["episodes"]  # a resumed run gets fresh episode streams
-        for rank in range(cfg.workers):
+        for rank in range(cfg.a3c.workers):
             process = context.Process(
                 target=_worker,
                 args=(

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from mapless.agent.buffers import BufferPool
-from mapless.train.config import OptimConfig
+from mapless.train.config import A3CConfig
 
 
 class SharedAdam(torch.optim.Optimizer):
@@ -41,7 +41,7 @@ class SharedAdam(torch.optim.Optimizer):
         self._scratch = BufferPool()
 
     @classmethod
-    def from_config(cls, params: Iterable[Tensor], config: OptimConfig) -> SharedAdam:
+    def from_config(cls, params: Iterable[Tensor], config: A3CConfig) -> SharedAdam:
         return cls(
             params, lr=config.lr, betas=(config.beta1, config.beta2), eps=config.eps, amsgrad=config.amsgrad
         )

@@ -4,7 +4,9 @@ the experiments' budgets alike (no copied config).
 A recipe is ``experiments/recipes/<name>.yaml``: ``train`` (training-config keys every model gets)
 and ``per_model`` (keys per model name). A training config that says ``recipe: NAME`` is read over
 it: the recipe's ``train``, then its ``per_model`` entry for the config's model, then the config's
-own keys, nested mappings key by key. What a run then holds is an ordinary training config; the
+own keys, nested mappings key by key; the recipe's settings block of the algorithm the config does
+not train with (``ppo:`` under ``algo: a3c``) is left out, so ``--set algo=a3c`` over a PPO recipe
+trains A3C with the recipe's other keys. What a run then holds is an ordinary training config; the
 recipe's name is not kept (its keys are), so a run folder's config says everything it trained with.
 """
 
@@ -45,11 +47,13 @@ def with_recipe(data: dict, directory: Path | None = None) -> dict:
     if unknown:
         raise ConfigError(f"{path}: unknown recipe key {sorted(unknown)[0]!r}; valid: per_model, train")
     model = (data.get("model") or {}).get("name", ModelConfig.name)
-    layers = (recipe.get("train") or {}, (recipe.get("per_model") or {}).get(model) or {}, data)
+    layers = (recipe.get("train") or {}, (recipe.get("per_model") or {}).get(model) or {})
     out: dict = {}
     for layer in layers:
         out = merge_mappings(out, layer)
-    return out
+    algo = data.get("algo", out.get("algo", TrainConfig.algo))
+    unread = {"a3c": "ppo", "ppo": "a3c"}.get(algo)  # an unknown algo is TrainConfig's to refuse
+    return merge_mappings({k: v for k, v in out.items() if k != unread}, data)
 
 
 def load_train_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:

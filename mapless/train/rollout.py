@@ -31,7 +31,7 @@ from mapless.models.memo import InViewMemo
 from mapless.sim.episode import Episode
 from mapless.sim.vector import BatchedNavEnv, BatchStep
 from mapless.train.a3c_loss import A3CLoss, a3c_loss
-from mapless.train.config import LossConfig
+from mapless.train.config import A3CConfig
 
 
 @dataclass
@@ -229,7 +229,7 @@ def run_batch(
     return recorder.trajectory(env)
 
 
-def episode_losses(trajectory: Trajectory, config: LossConfig) -> A3CLoss:
+def episode_losses(trajectory: Trajectory, config: A3CConfig) -> A3CLoss:
     """Per-episode A3C loss terms ``[B]``. Every training episode ends (Done or the 30-step limit)
     before the update, so nothing is bootstrapped (the references' R = 0)."""
     return a3c_loss(
@@ -246,7 +246,7 @@ def episode_losses(trajectory: Trajectory, config: LossConfig) -> A3CLoss:
     )
 
 
-def accumulate_gradients(actor: Actor, trajectory: Trajectory, config: LossConfig) -> A3CLoss:
+def accumulate_gradients(actor: Actor, trajectory: Trajectory, config: A3CConfig) -> A3CLoss:
     """Backpropagate the *mean* per-episode loss of the batch into ``.grad`` (the mean of the
     per-episode gradients, so one batched update moves as far as one reference update would with the
     average episode; at B = 1 it is exactly the reference's gradient)."""

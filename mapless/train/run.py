@@ -41,13 +41,22 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
             f"config key {fixed[0].split('=', 1)[0]!r}: a resumed run keeps its model, seed, algorithm, mode "
             "and batch layout (the checkpoint's state was made with them); start a new run to change them"
         )
-    data = apply_overrides(payload["config"], overrides or [])
+    data = apply_overrides(TrainConfig.upgrade_stored(payload["config"]), overrides or [])
     return from_dict(TrainConfig, data), payload
 
 
 LOCK_FILE = ".lock"
 #: Settings a checkpoint's state depends on: ``--resume --set`` may not change them.
-FIXED_ON_RESUME = ("model.", "seed", "algo", "mode", "batch_size", "workers", "ppo.envs", "env.scenes")
+FIXED_ON_RESUME = (
+    "model.",
+    "seed",
+    "algo",
+    "a3c.mode",
+    "a3c.batch_size",
+    "a3c.workers",
+    "ppo.envs",
+    "env.scenes",
+)
 
 
 @contextlib.contextmanager
@@ -136,7 +145,7 @@ def train(
     ctx = dist.init_distributed(config.device) if config.mode == "batched" else dist.DistContext()
     if config.mode == "async" and dist.launched_by_torchrun():
         raise ConfigError(
-            "config key 'mode': async (Hogwild) runs on one machine; use mode=batched under torchrun"
+            "config key 'a3c.mode': async (Hogwild) runs on one machine; use a3c.mode=batched under torchrun"
         )
     with contextlib.ExitStack() as stack:
         stack.callback(dist.shutdown, ctx)
