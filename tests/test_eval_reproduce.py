@@ -292,16 +292,8 @@ def test_eval_cli_adapted_unadapted_and_at_another_inner_rate(workspace, capsys)
     ckpt.atomic_save(
         ckpt.model_payload(build_model(config.model).state_dict(), config, {"episodes": 1}), model
     )
-    common = [
-        "eval",
-        str(model),
-        "--split",
-        "test",
-        "--episodes",
-        str(root / "test.json.gz"),
-        "--workers",
-        "1",
-    ]
+    episodes = str(root / "test.json.gz")
+    common = ["eval", str(model), "--split", "test", "--episodes", episodes, "--workers", "1"]
     records = {}
     for name, extra in (("adapted", []), ("theta0", ["--no-adapt"]), ("fast", ["--inner-lr", "0.5"])):
         assert main([*common, *extra, "--out", str(root / name)]) == 0
