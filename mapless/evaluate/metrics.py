@@ -73,6 +73,12 @@ def in_l5(optimal_length: int) -> bool:
     return optimal_length < 0 or optimal_length >= L5_THRESHOLD
 
 
+def same_actions(a: Sequence[EpisodeResult], b: Sequence[EpisodeResult]) -> int:
+    """How many of the same episodes two agents played with exactly the same actions (under the
+    evaluator's shared per-episode action draws: how far apart their policies are)."""
+    return sum(x.actions == y.actions for x, y in zip(a, b, strict=True))
+
+
 def exploration_counts(poses: Sequence[int]) -> np.ndarray:
     """``[L]``: number of distinct poses among the poses after actions 1..t, for t = 1..L."""
     seen: set[int] = set()

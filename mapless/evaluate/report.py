@@ -20,6 +20,7 @@ from mapless.evaluate.metrics import (
     compared_metrics,
     detail_metrics,
     main_metrics,
+    same_actions,
     summarize,
 )
 from mapless.evaluate.stats import Difference, Estimate, difference_estimates, seed_estimates
@@ -238,14 +239,13 @@ def comparison_table(
         for k in compared
     ]
     table = markdown(["metric", f"A: {label_a}", f"B: {label_b}", "B − A"], rows)
-    seeds = zip(per_seed_a, per_seed_b, strict=False)  # the seeds both sides have, as paired above
-    pairs = [pair for seed_a, seed_b in seeds for pair in zip(seed_a, seed_b, strict=True)]
-    if not all(x.actions and y.actions for x, y in pairs):  # results recorded without their actions
-        return table
-    same = sum(x.actions == y.actions for x, y in pairs)
+    seeds = list(zip(per_seed_a, per_seed_b, strict=False))  # the seeds both sides have, as paired above
+    if not all(x.actions and y.actions for a, b in seeds for x, y in zip(a, b, strict=True)):
+        return table  # results recorded without their actions
+    same, episodes = sum(same_actions(a, b) for a, b in seeds), sum(len(a) for a, _ in seeds)
     # Under the same action draws (the evaluator's per-episode uniforms), equal actions mean policies
     # too close to part: e.g. a model adapted at test time against its unadapted θ_0.
-    share = f"{same} of {len(pairs)} episodes ({100 * same / len(pairs):.1f} %)"
+    share = f"{same} of {episodes} episodes ({100 * same / episodes:.1f} %)"
     return f"{table}\n\nA and B took exactly the same actions in {share}."
 
 

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapless.evaluate.metrics import compared_metrics
+from mapless.evaluate.metrics import compared_metrics, same_actions
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
@@ -96,8 +96,9 @@ def table1(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator) 
                 continue
             per_seed, meta = _model_results(config, ev, row, minutes)
             meta_record = {"runs": meta, "protocol": config.eval.protocol, "within_minutes": minutes}
-            capped.append(model_record(f"{model} ≤ {minutes:g} min", per_seed, meta_record))
-            capped_results[f"{model} ≤ {minutes:g} min"] = per_seed
+            label = f"{model} ≤ {minutes:g} min"
+            capped.append(model_record(label, per_seed, meta_record))
+            capped_results[label] = per_seed
         _focus_minus_each(f"{config.focus} ≤ {minutes:g} min", capped, capped_results)
         by_minutes[minutes] = capped
     return Table1(_setting(config, ev), records, results, by_minutes)
@@ -203,7 +204,7 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
                     for run in runs]  # fmt: skip
         rec = model_record(f"{focus}: {row.what}", per_seed, {"runs": meta, "row": name, "what": row.what})
         if not row.train:  # the same snapshots and action draws, adapted or not: how much adapting changes
-            rec["same_actions"] = [_same_actions(a, b) for a, b in zip(full, per_seed, strict=True)]
+            rec["same_actions"] = [same_actions(a, b) / len(a) for a, b in zip(full, per_seed, strict=True)]
         # Paired over the focus model's seeds of the same numbers (a one-seed row: the first seed),
         # for the metrics the report's difference table shows (false Done too).
         rec["minus_focus"] = difference_record(
@@ -211,11 +212,6 @@ def ablation(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluator
         )
         records.append(rec)
     return Ablation(_setting(config, ev), records)
-
-
-def _same_actions(a: list, b: list) -> float:
-    """The share of episodes in which two agents took exactly the same actions."""
-    return sum(x.actions == y.actions for x, y in zip(a, b, strict=True)) / len(a)
 
 
 def _unadapted(config: ExperimentConfig, ev: Evaluator, focus: str, row, run: dict, seed: int) -> list:
