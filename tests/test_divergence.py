@@ -17,7 +17,7 @@ from mapless.train.gradients import check_finite
 from mapless.train.run import resume_config, train
 
 #: A finite but absurd penalty: the value loss overflows to inf and the gradient to NaN.
-DIVERGING = "env.step_penalty=-1e38"
+DIVERGING = "env.reward.step_penalty=-1e38"
 TRAINERS = {
     "batched": (),
     "ppo": ("algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=400"),

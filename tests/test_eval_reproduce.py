@@ -480,7 +480,7 @@ def test_reproduce_ablation_rows_against_the_focus_model(workspace):
         .replace("models: [random, a3c]", "models: [cvmeta]").replace("focus: a3c", "focus: cvmeta")
         + """ablations:
   a_unadapted: {what: no test-time adaptation, test_time_adaptation: false}
-  c_no_parent: {what: parent reward off, train: {env: {parent_reward: false}}}
+  c_no_parent: {what: parent reward off, train: {env: {reward: {parent_reward: false}}}}
   z_unused: {what: not run, train: {model: {fusion_channels: 4}}}
 ablation_rows: [a_unadapted, c_no_parent]
 """

@@ -8,8 +8,10 @@ the models' settings into experiments/recipes/laptop.yaml, which left every run 
 tests/data/run_folders.json; then eval.within_minutes and the long budget; then issue 44's a3c: block,
 by the key mapping alone (mapless.train.config.from_legacy_layout: the same values, checked by a
 one-off script), and its merge of an experiment's train: over the budget's, which gave table2_smoke
-the budget's env.scenes, replaced in each of its runs by the room type's: same runs), and the
-composition rules."""
+the budget's env.scenes, replaced in each of its runs by the room type's: same runs; then issue 44's
+env.reward: block, by the same key mapping (the ablation rows' env.parent_reward and
+env.parent_reward_rule moved under env.reward: by from_legacy_layout applied to each row's train:,
+nothing else changed), and the composition rules."""
 
 from __future__ import annotations
 

@@ -252,8 +252,8 @@ def test_only_the_chosen_algorithms_block_may_be_set() -> None:
     [
         "a3c.lr=inf",
         "a3c.lr=1e30",
-        "env.step_penalty=nan",
-        "env.success_reward=inf",
+        "env.reward.step_penalty=nan",
+        "env.reward.success_reward=inf",
         "a3c.value_coef=inf",
         "ppo.lr=inf",
     ],

@@ -98,7 +98,7 @@ def _diverging_rank(rank: int, port: int, out: str) -> None:
     # Only rank 1's episodes diverge (a finite but absurd penalty: the value loss overflows, the
     # gradient becomes NaN): the all-reduced gradient carries its NaN to rank 0.
     config = tiny_config(
-        "a3c", "a3c.batch_size=2", "episodes=400", *(["env.step_penalty=-1e38"] if rank else [])
+        "a3c", "a3c.batch_size=2", "episodes=400", *(["env.reward.step_penalty=-1e38"] if rank else [])
     )
     ctx = dist.init_distributed(config.device)
     try:

@@ -147,7 +147,7 @@ def table3_rows(config: ExperimentConfig) -> dict[str | None, Row]:
     rows: dict[str | None, Row] = {None: Row(config.focus)}
     for room in config.rooms:
         kept = [r for r in ROOM_TYPES if r != room]
-        extra = {"model": {"hierarchy_rooms": kept}, "env": {"parent_reward_rooms": kept}}
+        extra = {"model": {"hierarchy_rooms": kept}, "env": {"reward": {"parent_reward_rooms": kept}}}
         rows[room] = Row(config.focus, f"no-{room}", extra)
     return rows
 

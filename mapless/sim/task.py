@@ -3,6 +3,7 @@ adapts): rewards, limits, and how a target is turned into observation fields."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -39,24 +40,43 @@ class RewardConfig:
     at every move, that weight times the decrease of the shortest-path distance (in actions) to the
     nearest pose that sees the target: AllenAct's geodesic-progress shaping in this pose graph's unit.
     It is potential-based, so it telescopes to ``weight * (d_start - d_end)`` over an episode and leaves
-    the optimal policy unchanged."""
+    the optimal policy unchanged.
+
+    A training run's ``env.reward`` block (:class:`mapless.train.config.EnvConfig`). There
+    ``parent_reward`` None (the default) leaves the bonus to the model: on for mjolnir_o/mjolnir_r
+    (MJOLNIR's ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off
+    otherwise (:attr:`mapless.train.config.TrainConfig.parent_reward` resolves it before the
+    environment is built); an environment given None pays no bonus."""
 
     step_penalty: float = -0.01
     success_reward: float = 5.0
-    parent_reward: bool = False
+    parent_reward: bool | None = None
     parent_reward_rule: str = "visible"
     progress_reward: float = 0.0
     #: Room types whose parents pay the bonus (the hierarchy ablation drops one room type).
     parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
 
     def __post_init__(self) -> None:
+        for key in ("step_penalty", "success_reward", "progress_reward"):
+            value = getattr(self, key)
+            if not math.isfinite(value):
+                raise ConfigError(f"config key 'env.reward.{key}': must be finite, got {value}")
+        if self.progress_reward < 0:
+            raise ConfigError(
+                f"config key 'env.reward.progress_reward': must be >= 0, got {self.progress_reward}"
+            )
         if self.parent_reward_rule not in PARENT_REWARD_RULES:
             raise ConfigError(
-                f"config key 'env.parent_reward_rule': {self.parent_reward_rule!r} is not one of {PARENT_REWARD_RULES}"
+                f"config key 'env.reward.parent_reward_rule': {self.parent_reward_rule!r} is not one of {PARENT_REWARD_RULES}"
+            )
+        if unknown := set(self.parent_reward_rooms) - set(ROOM_TYPES):
+            raise ConfigError(
+                f"config key 'env.reward.parent_reward_rooms': unknown room types {sorted(unknown)}; "
+                f"valid: {ROOM_TYPES}"
             )
 
     def pays_parent_reward(self, room_type: str) -> bool:
-        return self.parent_reward and room_type in self.parent_reward_rooms
+        return bool(self.parent_reward) and room_type in self.parent_reward_rooms
 
 
 def max_steps_for(room_type: str, mode: str) -> int:

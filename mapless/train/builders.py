@@ -3,6 +3,7 @@ sampler, batched environment and model (the same for every trainer)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,15 +46,9 @@ def target_fields(config: TrainConfig) -> TargetFields:
 
 
 def reward_config(config: TrainConfig) -> RewardConfig:
-    env = config.env
-    return RewardConfig(
-        step_penalty=env.step_penalty,
-        success_reward=env.success_reward,
-        parent_reward=config.parent_reward,
-        parent_reward_rule=env.parent_reward_rule,
-        progress_reward=env.progress_reward,
-        parent_reward_rooms=env.parent_reward_rooms,
-    )
+    """The run's ``env.reward`` with its ``parent_reward`` None resolved for the model
+    (:attr:`TrainConfig.parent_reward`)."""
+    return dataclasses.replace(config.env.reward, parent_reward=config.parent_reward)
 
 
 def training_sampler(config: TrainConfig, library: SceneLibrary, seed: int) -> TrainingSampler:

@@ -17,10 +17,10 @@ from typing import Literal
 from mapless.config import ConfigError
 from mapless.models.base import ModelConfig
 from mapless.models.registry import MODELS
-from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes
+from mapless.scenes.catalogue import resolve_scenes
 from mapless.scenes.categories import targets
 from mapless.sim.config import SimConfig
-from mapless.sim.task import PARENT_REWARD_RULES, TRAIN_MAX_STEPS
+from mapless.sim.task import TRAIN_MAX_STEPS, RewardConfig
 
 
 def _require(ok: bool, key: str, message: str) -> None:
@@ -84,15 +84,9 @@ class EnvConfig:
     scenes: split name (``train``), ``split:room``, or comma-separated FloorPlan names.
     target_set: target list per room type (``mjolnir22``, ``savn`` or ``hoz22``,
         mapless.scenes.categories.TARGET_SETS); the evaluation sets follow it (mapless.episodes.evalsets).
-    parent_reward: MJOLNIR's parent-object bonus; None = on for mjolnir_o/mjolnir_r (MJOLNIR's
-        ``--partial_reward``) and cvmeta (the paper's hierarchical training signal), off otherwise.
-    parent_reward_rooms: room types whose parents pay the bonus (the hierarchy ablation drops one).
-    parent_reward_rule: when a parent counts as seen: ``visible`` (the success rule's visibility, as
-        MJOLNIR's reward reads THOR's ``visible`` flag) or ``in_frame`` (at any distance; this
-        project's rule before 2026-12-06); :class:`~mapless.sim.task.RewardConfig`.
-    step_penalty, success_reward: SAVN's rewards.
-    progress_reward: weight of the geodesic-progress shaping (:class:`~mapless.sim.task.RewardConfig`;
-        0 = off, the paper's protocol; docs/learning.md measures it).
+    reward: the rewards (:class:`~mapless.sim.task.RewardConfig`: SAVN's step penalty and success
+        reward, MJOLNIR's parent-object bonus, its rule and room types, the geodesic-progress
+        shaping), the one place a run's reward settings live.
     max_steps: training episode limit (30 in both references).
     cache_dir: cache root, as $MAPLESS_CACHE (scenes go in ``<cache_dir>/scenes/``; None = $MAPLESS_CACHE
         or ~/.cache/mapless).
@@ -104,12 +98,7 @@ class EnvConfig:
 
     scenes: str = "train"
     target_set: str = "mjolnir22"
-    parent_reward: bool | None = None
-    parent_reward_rooms: tuple[str, ...] = ROOM_TYPES
-    parent_reward_rule: str = "visible"
-    step_penalty: float = -0.01
-    success_reward: float = 5.0
-    progress_reward: float = 0.0
+    reward: RewardConfig = field(default_factory=RewardConfig)
     max_steps: int = TRAIN_MAX_STEPS
     cache_dir: str | None = None
     offline_dir: str | None = None
@@ -127,26 +116,10 @@ class EnvConfig:
         except KeyError as error:
             raise ConfigError(f"config key 'env.target_set': {error}") from None
         _require(self.max_steps > 0, "env.max_steps", f"must be positive, got {self.max_steps}")
-        for key in ("step_penalty", "success_reward", "progress_reward"):
-            _require(_finite(getattr(self, key)), f"env.{key}", f"must be finite, got {getattr(self, key)}")
-        _require(
-            self.progress_reward >= 0, "env.progress_reward", f"must be >= 0, got {self.progress_reward}"
-        )
         _require(
             self.layouts.source == "default" or not self.offline_dir,
             "env.layouts.source",
             "scene variants need the built-in simulator, not an offline data root",
-        )
-        _require(
-            self.parent_reward_rule in PARENT_REWARD_RULES,
-            "env.parent_reward_rule",
-            f"{self.parent_reward_rule!r} is not one of {PARENT_REWARD_RULES}",
-        )
-        unknown_rooms = set(self.parent_reward_rooms) - set(ROOM_TYPES)
-        _require(
-            not unknown_rooms,
-            "env.parent_reward_rooms",
-            f"unknown room types {sorted(unknown_rooms)}; valid: {ROOM_TYPES}",
         )
 
     def scene_list(self) -> list[str]:
@@ -313,14 +286,42 @@ def _changed_keys(block: object) -> list[str]:
 
 
 #: Where each training-config key of the layout before issue 44 lives now (old path, new path): the
-#: A3C settings, once the ``optim:`` and ``loss:`` blocks and three top-level keys, are ``a3c:``.
-LEGACY_KEYS: tuple[tuple[str, str], ...] = (
+#: A3C settings, once the ``optim:`` and ``loss:`` blocks and three top-level keys, are ``a3c:``; the
+#: reward settings, once six keys of ``env:``, are ``env.reward:``.
+A3C_KEYS: tuple[tuple[str, str], ...] = (
     *(
         (f"optim.{k}", f"a3c.{k}")
         for k in ("lr", "beta1", "beta2", "eps", "amsgrad", "grad_clip", "meta_grad_clip")
     ),
     *((f"loss.{k}", f"a3c.{k}") for k in ("gamma", "tau", "beta", "value_coef")),
     *((k, f"a3c.{k}") for k in ("mode", "batch_size", "workers")),
+)
+REWARD_KEYS: tuple[tuple[str, str], ...] = tuple(
+    (f"env.{k}", f"env.reward.{k}")
+    for k in (
+        "step_penalty",
+        "success_reward",
+        "parent_reward",
+        "parent_reward_rule",
+        "progress_reward",
+        "parent_reward_rooms",
+    )
+)
+LEGACY_KEYS = A3C_KEYS + REWARD_KEYS
+
+#: What each group of moved keys became, for the error that refuses an old key.
+_MOVED = (
+    (
+        A3C_KEYS,
+        "the A3C settings (the former optim: and loss: blocks, mode, batch_size, workers) are one "
+        "a3c: block beside ppo:",
+    ),
+    (
+        REWARD_KEYS,
+        "the reward settings (the former env: keys "
+        + ", ".join(old.split(".")[1] for old, _ in REWARD_KEYS)
+        + ") are one env.reward: block (mapless.sim.task.RewardConfig)",
+    ),
 )
 
 
@@ -482,25 +483,28 @@ class TrainConfig:
 
     @staticmethod
     def upgrade_stored(data: dict) -> dict:
-        """A config stored before issue 44 (checkpoints, model files) read into today's layout."""
+        """A config stored before issue 44 (checkpoints, model files, with the A3C settings and the
+        rewards in their old places) read into today's layout."""
         return from_legacy_layout(data)
 
     @staticmethod
     def check_mapping(data: dict, prefix: str = "") -> None:
         """Refuses a key of the layout before issue 44, saying where it lives now
         (:func:`mapless.config.from_dict` calls this before it reads the fields)."""
-        for old, new in LEGACY_KEYS:
-            if _has_path(data, old):
-                raise ConfigError(
-                    f"config key {prefix + old!r} has moved to {prefix + new!r}: the A3C settings "
-                    f"(the former optim: and loss: blocks, mode, batch_size, workers) are one a3c: block "
-                    f'beside ppo: (docs/training.md, "Configuration"); write it there'
-                )
+        for keys, what in _MOVED:
+            for old, new in keys:
+                if _has_path(data, old):
+                    raise ConfigError(
+                        f"config key {prefix + old!r} has moved to {prefix + new!r}: {what} "
+                        f'(docs/training.md, "Configuration"); write it there'
+                    )
 
     @property
     def parent_reward(self) -> bool:
-        if self.env.parent_reward is not None:
-            return self.env.parent_reward
+        """``env.reward.parent_reward``, None resolved for the model (its class's
+        ``trains_with_parent_reward``)."""
+        if self.env.reward.parent_reward is not None:
+            return self.env.reward.parent_reward
         return MODELS[self.model.name].trains_with_parent_reward
 
     def replace(self, **changes) -> TrainConfig:
