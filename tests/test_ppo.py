@@ -130,7 +130,7 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
             segment.obs, segment.prev_policy, segment.starts, segment.hidden
         )
     else:
-        logits, values, _ = trainer._replay_episodes(segment, columns)
+        logits, values, _ = trainer.replay_episodes(segment, columns)
     steps = logits.shape[0]
     log_prob = torch.log_softmax(logits, -1).gather(-1, segment.actions[:steps, :, None]).squeeze(-1)
     mask = segment.mask[:steps] > 0
@@ -187,7 +187,7 @@ def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones(model: str
     def gradient(columns: list[int]) -> list[torch.Tensor]:
         trainer.optimizer.zero_grad(set_to_none=True)
         index = torch.tensor(columns)
-        logits, values, state = trainer._replay_episodes(segment, index)
+        logits, values, state = trainer.replay_episodes(segment, index)
         steps = logits.shape[0]
         mask = segment.mask[:steps, index]
         objective = ((logits * weights[:steps, index]).sum(-1) + values) * mask
@@ -321,10 +321,12 @@ def _adaptive_trainer(*overrides: str) -> tuple[PPOTrainer, object]:
     return trainer, trainer.collector.collect(8, trainer.rng)
 
 
-def _gradients(trainer: PPOTrainer, segment, advantages: torch.Tensor) -> dict[str, torch.Tensor | None]:
+def _gradients(
+    trainer: PPOTrainer, segment, advantages: torch.Tensor, imitation: float = 0.0
+) -> dict[str, torch.Tensor | None]:
     columns = torch.arange(segment.mask.shape[1])
     returns = segment.values + advantages
-    trainer.minibatch_step(segment, columns, advantages, returns)
+    trainer.minibatch_step(segment, columns, advantages, returns, imitation)
     return {n: None if p.grad is None else p.grad.clone() for n, p in trainer.model.named_parameters()}
 
 
@@ -362,9 +364,8 @@ def test_the_learned_loss_takes_no_step_while_the_expert_term_is_on(
     trainer, segment = _adaptive_trainer(
         "ppo.imitation_coef=1", f"meta.learned_loss_from_imitation={str(from_imitation).lower()}"
     )
-    trainer._imitation = imitation
     torch.manual_seed(0)
-    grads = _gradients(trainer, segment, torch.randn_like(segment.values))
+    grads = _gradients(trainer, segment, torch.randn_like(segment.values), imitation)
     phi = trainer.model.learned_loss_parameter_names()
     assert phi
     has_step = [grads[n] is not None and bool(grads[n].abs().sum() > 0) for n in phi]

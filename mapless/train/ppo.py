@@ -57,8 +57,7 @@ _LOSS_KEYS = ("total", "policy", "value", "entropy", "approx_kl", "clip_fraction
 class PPOTrainer(SynchronousTrainer):
     label = "ppo"
 
-    _imitation = 0.0  # this update's imitation weight (ppo.imitation_coef, annealed)
-    _imitation_loss = 0.0
+    _imitation_loss = 0.0  # this update's sum of the expert cross-entropy over its minibatches
 
     def _environment_slots(self) -> int:
         return self.config.ppo.envs
@@ -108,7 +107,7 @@ class PPOTrainer(SynchronousTrainer):
             ppo.lam,
         )
         lr = self._learning_rate()
-        self._imitation = self._imitation_weight()
+        imitation = self._imitation_weight()
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         sums = dict.fromkeys(_LOSS_KEYS, 0.0)
@@ -118,7 +117,7 @@ class PPOTrainer(SynchronousTrainer):
         for _ in range(ppo.epochs):
             order = torch.from_numpy(self.rng.permutation(slots)).to(self.device)
             for minibatch in order.chunk(ppo.minibatches):
-                loss = self.minibatch_step(segment, minibatch, advantages, returns)
+                loss = self.minibatch_step(segment, minibatch, advantages, returns, imitation)
                 grad_norms.append(self._step())
                 for key in _LOSS_KEYS:
                     sums[key] += float(getattr(loss, key))
@@ -134,7 +133,7 @@ class PPOTrainer(SynchronousTrainer):
             "scalars": {
                 "ppo/explained_variance": explained,
                 "ppo/lr": lr,
-                "ppo/imitation_coef": self._imitation,
+                "ppo/imitation_coef": imitation,
                 "ppo/imitation_loss": self._imitation_loss / passes,
             },
         }
@@ -156,10 +155,12 @@ class PPOTrainer(SynchronousTrainer):
         return ppo.imitation_coef * max(1.0 - self.counters["frames"] / ppo.imitation_frames, 0.0)
 
     def minibatch_step(
-        self, segment: Segment, columns: Tensor, advantages: Tensor, returns: Tensor
+        self, segment: Segment, columns: Tensor, advantages: Tensor, returns: Tensor, imitation: float = 0.0
     ) -> PPOLoss:
         """Replay the slots ``columns`` with the current parameters and backpropagate PPO's loss
-        into ``.grad`` (the optimizer step is :meth:`update`'s)."""
+        into ``.grad`` (the optimizer step is :meth:`update`'s). ``imitation``: the weight of the
+        expert cross-entropy in the loss (:meth:`update` passes ``ppo.imitation_coef``, annealed;
+        0, no expert term)."""
         ppo = self.config.ppo
         self.optimizer.zero_grad(set_to_none=True)
         mask = segment.mask[:, columns]
@@ -179,7 +180,7 @@ class PPOTrainer(SynchronousTrainer):
                 logits, values = self.model.replay(obs, segment.prev_policy[:, columns], starts, hidden)
                 state = None
             else:
-                logits, values, state = self._replay_episodes(segment, columns)
+                logits, values, state = self.replay_episodes(segment, columns)
         steps = logits.shape[0]
         loss = ppo_loss(
             logits,
@@ -196,26 +197,30 @@ class PPOTrainer(SynchronousTrainer):
             entropy_coef=ppo.entropy_coef,
         )
         total = loss.total
-        if self._imitation > 0:
+        if imitation > 0:
             expert = segment.expert[:steps, columns]
             known = (expert >= 0) & (mask[:steps] > 0)
             if bool(known.any()):
-                imitation = F.cross_entropy(logits[known], expert[known])
-                total = total + self._imitation * imitation
-                self._imitation_loss += float(imitation.detach())
+                cross_entropy = F.cross_entropy(logits[known], expert[known])
+                total = total + imitation * cross_entropy
+                self._imitation_loss += float(cross_entropy.detach())
         if state is None:
             total.backward()
         else:
             self.inner.backward(state, total)
-            if self._imitation > 0 and not self.config.meta.learned_loss_from_imitation:
+            if imitation > 0 and not self.config.meta.learned_loss_from_imitation:
                 # φ must learn to stand in for the navigation loss, not for the expert's
                 # cross-entropy, which does not exist at test time: no φ step in this update.
                 for param in self._learned_loss_params:
                     param.grad = None
         return PPOLoss(*(t.detach() for t in loss))
 
-    def _replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
-        """Whole episodes through the meta-learning inner loop, adapted from the current parameters.
+    def replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
+        """The slots ``columns`` of an adaptive model's ``segment`` of whole episodes replayed
+        through the meta-learning inner loop, adapted from the current parameters: logits
+        ``[T, B, A]``, values ``[T, B]`` and the inner loop's state, through which
+        ``self.inner.backward(state, loss)`` carries a loss of them into ``.grad`` (the adaptive
+        counterpart of :meth:`~mapless.models.base.RecurrentNavModel.replay`; :meth:`minibatch_step` calls it).
 
         Only the episodes still running are stepped (``rows``: their positions in ``columns``); an
         episode that ended leaves the inner loop's batch (:meth:`InnerLoop.compact`), and its later
