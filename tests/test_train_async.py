@@ -33,6 +33,25 @@ def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:
     assert [n for n, _ in ckpt.snapshots(tmp_path)] == [6, 12]
 
 
+def test_a_resumed_async_run_starts_from_the_checkpoints_model_optimizer_and_counters(tmp_path: Path) -> None:
+    config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=1", "episodes=6", "checkpoint_every=6")
+    AsyncTrainer(config, tmp_path, fixture_library).run()
+    saved = ckpt.load_file(tmp_path / ckpt.CHECKPOINT_FILE)
+    trainer = AsyncTrainer(config, None, fixture_library)
+    summary = trainer.run(saved)  # the budget is spent already: nothing is trained
+    assert summary["episodes"] == 6
+    assert trainer.counters == {k: saved["counters"][k] for k in ("episodes", "frames", "updates")}
+    model = trainer.model.state_dict()
+    assert model.keys() == saved["model"].keys()
+    assert all(torch.equal(model[k], v) for k, v in saved["model"].items())
+    optimizer = trainer.optimizer.state_dict()["state"]
+    assert optimizer.keys() == saved["optimizer"]["state"].keys()
+    for key, slot in saved["optimizer"]["state"].items():
+        assert all(
+            torch.equal(torch.as_tensor(optimizer[key][k]), torch.as_tensor(v)) for k, v in slot.items()
+        )
+
+
 def test_killed_worker_is_reported_and_the_run_stops(tmp_path: Path) -> None:
     config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=1000000000")
     trainer = AsyncTrainer(config, tmp_path, fixture_library)

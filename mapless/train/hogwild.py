@@ -19,6 +19,14 @@ waits for statistics, so it never blocks on a dead worker.
 Resuming restores the model, the optimizer state and the counters; the workers' episode streams are
 reseeded from the episode counter (Hogwild updates interleave nondeterministically, so an async run
 is not bit-reproducible anyway; the batched trainer is).
+
+The run loop, budget, checkpoints (written and read back), monitor, divergence rule and graceful
+stop are :class:`~mapless.train.loop.TrainingLoop`'s, as for PPO and the batched A3C trainer; the
+objects a worker builds come from :mod:`mapless.train.builders` and its update from
+:mod:`mapless.train.rollout`, as the batched trainer's do. It is not a
+:class:`~mapless.train.synchronous.SynchronousTrainer`: its model and optimizer live in shared
+memory in the main process, which builds no environment; each worker builds its own and steps
+without the ranks' all-reduce, and no random stream is kept in the checkpoint.
 """
 
 from __future__ import annotations
@@ -152,9 +160,7 @@ class AsyncTrainer(TrainingLoop):
         self.model = new_model(cfg)
         self.optimizer = SharedAdam.from_config(trainable(self.model), cfg.a3c)
         if resume is not None:
-            self.model.load_state_dict(resume["model"])
-            self.optimizer.load_state_dict(resume["optimizer"])
-            self.counters = {k: int(v) for k, v in resume["counters"].items() if k in self.counters}
+            self._restore_run_state(resume)
         self.model.share_memory()
         self.optimizer.share_memory()
 

@@ -91,6 +91,13 @@ class TrainingLoop(abc.ABC):
         if self.has_run_folder:
             self.saved = dict(self.counters)
 
+    def _restore_run_state(self, state: dict) -> None:
+        """Read back what :meth:`_checkpoint` wrote of the model, the optimizer and the counters
+        (``state``: a loaded checkpoint); each trainer restores its own random streams."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.counters = {k: int(v) for k, v in state["counters"].items() if k in self.counters}
+
     def _check_finite(self, grad_norm: float) -> None:
         """The divergence rule (:func:`~mapless.train.gradients.check_finite`) at this run's counters."""
         check_finite(grad_norm, self.counters, self.saved)

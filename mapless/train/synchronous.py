@@ -102,9 +102,7 @@ class SynchronousTrainer(TrainingLoop, abc.ABC):
         return state
 
     def _restore(self, state: dict) -> None:
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.counters = {k: int(v) for k, v in state["counters"].items() if k in self.counters}
+        self._restore_run_state(state)
         rngs = state.get("rng", [])
         if self.ctx.rank < len(rngs):
             rng = rngs[self.ctx.rank]
