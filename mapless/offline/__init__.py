@@ -1,8 +1,8 @@
 """SAVN/MJOLNIR offline data both ways.
 
 Scene folders: ``format`` (the file layout), ``reader``, ``writer``. Evaluation episode pickles:
-``episodes`` (read and map onto the built-in scenes), ``episode_writer``; ``safe_pickle`` reads a
-published pickle without running its code.
+``episodes`` (read and map onto the built-in scenes), ``episode_writer``; :mod:`mapless.safe_pickle`
+reads a published pickle without running its code.
 """
 
 from mapless.offline.episode_writer import write_episode_file

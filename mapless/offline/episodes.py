@@ -2,7 +2,7 @@
 built-in scenes (writing ours in their format: :mod:`mapless.offline.episode_writer`).
 
 Reading needs none of the original classes and never runs the file's code
-(:mod:`mapless.offline.safe_pickle`): SAVN pickles hold a ``ThorAgentState`` start state and torch
+(:mod:`mapless.safe_pickle`): SAVN pickles hold a ``ThorAgentState`` start state and torch
 GloVe tensors.
 
 Mapping (docs/interop.md, section 2): AI2-THOR object ids changed between versions, so a target id
@@ -33,7 +33,7 @@ from mapless.offline.format import (
     object_type_of_id,
     parse_pose_key,
 )
-from mapless.offline.safe_pickle import Placeholder, load_untrusted
+from mapless.safe_pickle import Placeholder, load_untrusted
 from mapless.sim.episode import Episode
 from mapless.sim.scene_data import SceneData, pose_key
 

@@ -27,7 +27,7 @@ from importlib import resources
 from pathlib import Path
 
 from mapless.errors import MaplessError
-from mapless.offline.safe_pickle import check_opcodes
+from mapless.safe_pickle import check_opcodes
 from mapless.scenes.catalogue import PHASES
 
 BUILTIN_SOURCES = {"rearrange2023": "variants/rearrange2023_train.pkl.gz"}
