@@ -56,6 +56,8 @@ def test_oracle_scores_perfectly(episodes):
     for r, e in zip(run.results, episodes, strict=True):
         data = lib[e.scene]
         assert data.target_distances(e.target)[r.poses[-1]] == 0
+    # It first sees the target where it stops: its last move (the start, for a one-step episode).
+    assert [r.first_seen for r in run.results] == [r.length - 1 for r in run.results]
 
 
 def test_results_independent_of_workers_and_batch_neighbours(episodes):
@@ -91,6 +93,11 @@ def test_random_policy_samples_uniformly_and_respects_limits(episodes):
         assert r.length <= limit
         assert r.called_done == (r.actions[-1] == 5)
         assert r.called_done or r.length == limit
+    # Every success saw its target (at the latest where it stopped); a walk of 100 steps sees more
+    # targets than the few Dones that end on one.
+    assert all(0 <= r.first_seen <= r.length - 1 for r in run.results if r.success)
+    assert all(-1 <= r.first_seen <= r.length for r in run.results)
+    assert sum(r.first_seen >= 0 for r in run.results) > sum(r.success for r in run.results)
 
 
 def test_greedy_ignores_the_sampling_seed(episodes):

@@ -6,8 +6,9 @@ import json
 import os
 from dataclasses import replace
 
+import numpy as np
 import pytest
-from eval_fixtures import fixture_episodes
+from eval_fixtures import fixture_episodes, fixture_library
 from train_fixtures import fixture_library as training_scenes
 from train_fixtures import tiny_config
 
@@ -141,6 +142,22 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
     assert evaluated()
     cache.write_text(cache.read_text()[:100])  # torn by an older, non-atomic writer
     assert evaluated() and json.loads(cache.read_text())["episodes"]
+    # Results cached before first sights were recorded: filled in from their poses, and stored.
+    stored = json.loads(cache.read_text())
+    recorded = [e["first_seen"] for e in stored["episodes"]]
+    assert all(f is not None for f in recorded)
+    first = stored["episodes"][0]
+    if first["first_seen"] == -1 and first["length"] >= 3:  # as if its third move had found a target
+        first["poses"][2] = int(
+            np.flatnonzero(fixture_library()[episodes[0].scene].goal_mask(episodes[0].target))[0]
+        )
+        recorded[0] = 3
+    for e in stored["episodes"]:
+        del e["first_seen"]
+    cache.write_text(json.dumps({**stored, "seconds": -1.0}))
+    run = cached_evaluate(spec, episodes, settings, scenes, cache)
+    assert run.seconds == -1.0 and [r.first_seen for r in run.results] == recorded
+    assert [e["first_seen"] for e in json.loads(cache.read_text())["episodes"]] == recorded
 
 
 @pytest.mark.usefixtures("single_torch_thread")

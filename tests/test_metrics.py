@@ -20,6 +20,7 @@ from mapless.evaluate.metrics import (
     compared_metrics,
     exploration_curve,
     exploration_ratio,
+    first_sight,
     in_l5,
     main_metrics,
     register,
@@ -180,6 +181,29 @@ def test_episodes_stored_without_poses_are_left_out_of_the_exploration_ratio_eve
     assert math.isnan(seed_estimates([bare])["exploration_ratio"].mean)
 
 
+def test_first_sight_is_the_first_step_on_a_pose_that_sees_the_target():
+    sees = np.zeros(8, dtype=bool)
+    sees[[4, 6]] = True
+    assert first_sight(sees, 0, [1, 2, 4, 5, 6]) == 3  # path 0, 1, 2, 4: step 3
+    assert first_sight(sees, 6, [5, 4]) == 0  # the start sees it
+    assert first_sight(sees, 0, [1, 1, 2]) == -1
+    assert first_sight(sees, 0, []) == -1  # no step taken
+
+
+def test_seen_rate_counts_episodes_that_saw_the_target_and_skips_unrecorded_ones():
+    seen_at = [2, -1, 0, None]  # saw it; never; from the start; cached before it was recorded
+    results = [dataclasses.replace(ep(i, i == 2, 4, 4), first_seen=f) for i, f in enumerate(seen_at)]
+    m = aggregate(results)
+    assert m["seen_rate"] == pytest.approx(2 / 3) and m["success"] == pytest.approx(1 / 4)
+    assert seed_estimates([results])["seen_rate"].episodes == 3
+    assert math.isnan(aggregate(results[3:])["seen_rate"])
+    # Stored and read back whole, and an old record without the field reads as unrecorded.
+    assert EpisodeResult.from_dict(results[1].to_dict()) == results[1]
+    old = results[1].to_dict()
+    del old["first_seen"]
+    assert EpisodeResult.from_dict(old).first_seen is None
+
+
 def test_report_cells_and_table():
     results = [ep(i, i < 3, 8, 4) for i in range(4)]
     record = model_record("cvmeta", [results])
@@ -304,7 +328,7 @@ def test_metric_declarations_are_checked():
         difference_estimates([[ep(0, True, 4, 4)]], [[ep(0, True, 4, 4)]], ["failed_action_rate"])
     # The tables' column groups and what compare shows are the declarations' (in declaration order).
     assert main_metrics() == ("success", "spl", "l5_success", "l5_spl")
-    assert compared_metrics() == (*main_metrics(), "false_done_rate")
+    assert compared_metrics() == (*main_metrics(), "false_done_rate", "seen_rate")
     assert [METRICS[k].scale for k in ("success", "ep_length")] == [100.0, 1.0]
 
 

@@ -46,6 +46,10 @@ class EpisodeResult:
     #: Pose id (scene-local) after each action; ``len(poses) == length``.
     poses: tuple[int, ...] = field(default=(), repr=False)
     actions: tuple[int, ...] = field(default=(), repr=False)
+    #: The step after which a target instance was first visible under the success rule (0: from
+    #: the start), -1 if never: whether the agent's search found the target, whatever its stop did.
+    #: None where not recorded (results cached before 2026-12-06 that nothing has filled in since).
+    first_seen: int | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -77,6 +81,15 @@ def same_actions(a: Sequence[EpisodeResult], b: Sequence[EpisodeResult]) -> int:
     """How many of the same episodes two agents played with exactly the same actions (under the
     evaluator's shared per-episode action draws: how far apart their policies are)."""
     return sum(x.actions == y.actions for x, y in zip(a, b, strict=True))
+
+
+def first_sight(goal_mask: np.ndarray, start_pose: int, poses: Sequence[int]) -> int:
+    """:attr:`EpisodeResult.first_seen` of a trajectory: the first step index at which the agent
+    stood on a pose of ``goal_mask`` (bool ``[P]``: a target instance visible), 0 being the start,
+    -1 if it never did."""
+    path = np.concatenate([[start_pose], np.asarray(poses, dtype=np.int64)]).astype(np.int64)
+    hits = np.flatnonzero(goal_mask[path])
+    return int(hits[0]) if len(hits) else -1
 
 
 def exploration_counts(poses: Sequence[int]) -> np.ndarray:
@@ -118,7 +131,7 @@ def exploration_curve(
 
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     """Per-episode arrays: success, spl, l5 membership, length, done, false done (``Done`` with no
-    target instance visible), failed-action share, exploration."""
+    target instance visible), failed-action share, exploration, seen (NaN where not recorded)."""
     n = len(results)
     values = {
         "success": np.fromiter((r.success for r in results), dtype=np.float64, count=n),
@@ -135,6 +148,11 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
         "reward": np.fromiter((r.reward for r in results), dtype=np.float64, count=n),
         "exploration": np.fromiter(
             (exploration_counts(r.poses)[-1] / len(r.poses) if r.poses else np.nan for r in results),
+            dtype=np.float64,
+            count=n,
+        ),
+        "seen": np.fromiter(
+            (np.nan if r.first_seen is None else float(r.first_seen >= 0) for r in results),
             dtype=np.float64,
             count=n,
         ),
@@ -221,6 +239,9 @@ register(
     Metric("failed_action_rate", "failed", "failed_actions", per="ep_length", interval=False, table="details")
 )
 register(Metric("exploration_ratio", "explore", "exploration", table="details"))
+#: The SR an oracle stop would give (Done at the first sight of the target): SR against it splits a
+#: model's failures into search (never saw the target) and stopping (saw it, did not end there).
+register(Metric("seen_rate", "seen", "seen", table="details", compared=True))
 register(Metric("reward", "reward", "reward", percent=False, interval=False))
 
 

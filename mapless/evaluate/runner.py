@@ -38,7 +38,7 @@ from mapless.agent.acting import sample_actions
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, OracleAgent
 from mapless.errors import MaplessError
-from mapless.evaluate.metrics import EpisodeResult
+from mapless.evaluate.metrics import EpisodeResult, first_sight
 from mapless.offline import offline_library
 from mapless.scenes.catalogue import room_type_of
 from mapless.sim.cache import fingerprint
@@ -172,6 +172,41 @@ class EvalSettings:
     category_set: str = "mjolnir101"
 
 
+class GoalMasks:
+    """Per episode target, the poses of its scene where a target instance is visible (the success
+    rule's), computed once per (scene, target, instances)."""
+
+    def __init__(self, library: SceneLibrary):
+        self.library = library
+        self._masks: dict[tuple, np.ndarray] = {}
+
+    def __call__(self, episode: Episode) -> np.ndarray:
+        key = (episode.scene, episode.target, episode.target_ids)
+        if key not in self._masks:
+            data = self.library[episode.scene]
+            self._masks[key] = data.goal_mask_for_instances(
+                data.goal_instances(episode.target, episode.target_ids)
+            )
+        return self._masks[key]
+
+
+def with_first_seen(
+    results: Sequence[EpisodeResult], episodes: Sequence[Episode], library: SceneLibrary
+) -> list[EpisodeResult]:
+    """``results`` (of ``episodes``, by index) with :attr:`EpisodeResult.first_seen` filled in from
+    their recorded poses where it is missing (results cached before it was recorded)."""
+    masks = GoalMasks(library)
+    filled = []
+    for r in results:
+        if r.first_seen is None:
+            episode = episodes[r.index]
+            if episode.episode_id != r.episode_id:
+                raise MaplessError(f"result {r.index} is of episode {r.episode_id}, not {episode.episode_id}")
+            r = dataclasses.replace(r, first_seen=first_sight(masks(episode), r.start_pose, r.poses))
+        filled.append(r)
+    return filled
+
+
 class _EvaluationRecorder:
     """The :class:`~mapless.agent.episode_loop.LoopAgent` of :func:`run_episodes`: feeds the set's
     episodes in order, samples ``agent``'s actions from each episode's own uniforms and records every
@@ -201,6 +236,7 @@ class _EvaluationRecorder:
         self.offsets = np.zeros(batch, dtype=np.int64)
         self.results: list[EpisodeResult] = []
         self.t = np.zeros(batch, dtype=np.int64)  # each slot's step index when it last acted
+        self.goal_masks: GoalMasks | None = None
 
     def feed(self, free: np.ndarray) -> list[Episode]:
         items = [self.queue.pop() for _ in free[: len(self.queue)]]
@@ -234,10 +270,12 @@ class _EvaluationRecorder:
         self.actions[act, t[act]] = actions[act]
         self.failed += step.failed_action
         self.reward += step.reward
+        self.goal_masks = self.goal_masks or GoalMasks(env.library)
         for slot in np.flatnonzero(step.terminated | step.truncated):
             item = int(self.slot_item[slot])
             episode = self.episodes[item]
             length = int(env.steps[slot])
+            poses = self.poses[slot, :length]
             self.results.append(
                 EpisodeResult(
                     index=int(self.indices[item]),
@@ -252,8 +290,9 @@ class _EvaluationRecorder:
                     failed_actions=int(self.failed[slot]),
                     reward=float(self.reward[slot]),
                     start_pose=int(self.start_pose[slot]),
-                    poses=tuple(self.poses[slot, :length].tolist()),
+                    poses=tuple(poses.tolist()),
                     actions=tuple(self.actions[slot, :length].tolist()),
+                    first_seen=first_sight(self.goal_masks(episode), int(self.start_pose[slot]), poses),
                 )
             )
             self.slot_item[slot] = -1

@@ -23,7 +23,7 @@ from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, aggregate, main_metrics
 from mapless.evaluate.report import read_json, write_json
-from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate
+from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate, with_first_seen
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
 
@@ -164,15 +164,22 @@ def cached_evaluate(
             stored = {}
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
+            if any(r.first_seen is None for r in results):  # cached before it was recorded
+                results = with_first_seen(results, episodes, library.build())
+                _store(cache, key, stored["seconds"], stored["steps"], results)
             return EvalRun(results, stored["seconds"], stored["steps"])
     run = evaluate(spec, episodes, settings, library)
     if cache is not None:
-        write_json(
-            {"key": key, "seconds": run.seconds, "steps": run.steps, "metrics": aggregate(run.results),
-             "episodes": [r.to_dict() for r in run.results]},
-            cache,
-        )  # fmt: skip
+        _store(cache, key, run.seconds, run.steps, run.results)
     return run
+
+
+def _store(cache: Path, key: dict, seconds: float, steps: int, results: list[EpisodeResult]) -> None:
+    write_json(
+        {"key": key, "seconds": seconds, "steps": steps, "metrics": aggregate(results),
+         "episodes": [r.to_dict() for r in results]},
+        cache,
+    )  # fmt: skip
 
 
 def select_and_report(
