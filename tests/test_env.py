@@ -175,6 +175,27 @@ def _seen_categories(data, rule: str) -> np.ndarray:
     return seen
 
 
+def test_context_distance_is_the_nearest_in_view_instance_of_each_category(library):
+    """Pose by pose against the scene's in-view lists: per category, the smallest distance of its
+    in-view instances, 0 where none is in view (so exactly where the context's in-view flag is 0)."""
+    from mapless.scenes.categories import category_set
+
+    data, rows = library[SCENE], category_set().type_to_index
+    env = BatchedNavEnv(library, [SCENE], 1)
+    distance = env.context_distance
+    assert distance.shape == data.context.shape[:2]
+    for pose in range(data.n_poses):
+        expected = np.zeros(data.context.shape[1], dtype=np.float32)
+        s = slice(data.view_ptr[pose], data.view_ptr[pose + 1])
+        for instance, d in zip(data.view_instance[s], data.view_distance[s], strict=True):
+            row = rows.get(data.instance_types[instance], -1)
+            if row >= 0:
+                expected[row] = d if expected[row] == 0 else min(expected[row], d)
+        np.testing.assert_array_equal(distance[pose], expected)
+    assert ((distance > 0) == (data.context[:, :, 0] > 0)).all()
+    assert distance.max() > 1.5  # in the frame beyond the success rule's reach
+
+
 @pytest.mark.parametrize("rule", ["visible", "in_frame"])
 def test_parent_reward_pays_once_per_parent_per_episode(library, rule):
     data = library[SCENE]

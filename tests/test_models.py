@@ -6,6 +6,7 @@ import pytest
 import torch
 from torch.func import functional_call, vmap
 
+from mapless.agent.acting import observation_keys
 from mapless.config import ConfigError
 from mapless.errors import UnknownNameError
 from mapless.knowledge import normalize_adjacency, synthetic_knowledge
@@ -377,6 +378,25 @@ def test_cvmeta_reads_the_semantic_map_only_with_the_option(tiny):
     assert torch.equal(without(*args(obs)).logits, without(*args(moved)).logits)
     assert with_map.parameter_role_map()["embed_map.weight"] == "encoder"
     assert "embed_map.weight" not in with_map.inner_parameter_names()
+
+
+def test_cvmeta_reads_the_context_distance_only_with_the_option(tiny):
+    """``model.context_distance`` adds a distance column to cvmeta's context vector and to its target
+    row; without it the observation key is never read (so no environment computes it)."""
+    gen = torch.Generator().manual_seed(6)
+    obs = synthetic_observations(2, tiny, generator=gen)
+    obs["target_index"] = torch.tensor([1, 4])
+    moved = {**obs, "context_distance": obs["context_distance"] + 1.0}
+    args = lambda o: (o, (torch.zeros(2, 24), torch.zeros(2, 24)), torch.full((2, 6), 1 / 6))  # noqa: E731
+    small = {"knowledge": tiny, "hidden_size": 24, "fusion_channels": 2, "target_context": True}
+    with_distance = build_model("cvmeta", context_distance=True, **small).eval()
+    without = build_model("cvmeta", **small).eval()
+    assert with_distance.context_embed.weight.shape[1] == without.context_embed.weight.shape[1] + 1 == 6
+    assert with_distance.embed_target_context.weight.shape[1] == 5
+    assert not torch.allclose(with_distance(*args(obs)).logits, with_distance(*args(moved)).logits)
+    assert torch.equal(without(*args(obs)).logits, without(*args(moved)).logits)
+    assert "context_distance" in observation_keys(with_distance)
+    assert "context_distance" not in observation_keys(without)
 
 
 def test_adapt_none_makes_an_adaptive_model_a_plain_recurrent_policy(tiny):

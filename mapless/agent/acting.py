@@ -66,6 +66,7 @@ def observation_keys(model: NavModel) -> tuple[str, ...]:
         features=torch.zeros(1, model.feature_channels, 7, 7),
         target_embedding=torch.zeros(1, model.glove_dim),
         target_index=torch.zeros(1, dtype=torch.long),
+        context_distance=torch.zeros(1, c),
     )
     device = next((p.device for p in model.parameters()), torch.device("cpu"))
     probe = _RecordingObs({k: v.to(device) for k, v in probe.items()})

@@ -49,6 +49,7 @@ def _meta_learns_under_ppo(train_cfg) -> bool:
 _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
     ("env.layouts", lambda c: c.env.layouts != type(c.env.layouts)()),
     ("model.semantic_map", lambda c: c.model.semantic_map),
+    ("model.context_distance", lambda c: c.model.context_distance),
     ("ppo.bootstrap_time_limit", lambda c: c.ppo.bootstrap_time_limit and _meta_learns_under_ppo(c)),
     ("meta.navigation_loss", _meta_learns_under_ppo),
     ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),

@@ -84,7 +84,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         super().__init__(config, knowledge)
         nodes, width = self.num_categories, self.num_categories + self.glove_dim
         hidden = config.gcn_hidden or width
-        self.context_embed = nn.Conv1d(5, EMBED, 1)
+        distance = int(config.context_distance)
+        self.context_embed = nn.Conv1d(5 + distance, EMBED, 1)
         self.A = normalized_adjacency_parameter(self.knowledge.graph(self.graph_name()))
         self.register_buffer("all_glove", torch.tensor(self.knowledge.glove, dtype=torch.float32))
         self.W0 = nn.Linear(width, hidden, bias=False)
@@ -92,7 +93,7 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
         self.W2 = nn.Linear(hidden, EMBED, bias=False)
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
         if config.target_context:
-            self.embed_target_context = nn.Linear(4, EMBED)
+            self.embed_target_context = nn.Linear(4 + distance, EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv1d(EMBED + EMBED + EMBED + 10, config.fusion_channels, 1)
         self.dropout = Dropout(config.dropout)
@@ -117,12 +118,14 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:
         """Context and graph descriptors ``[B, 64, C]`` and the target descriptor ``[B, 64]``."""
-        cv = context_vector(obs, self.all_glove)  # [B, C, 5]
+        cv = context_vector(obs, self.all_glove, self.config.context_distance)  # [B, C, 5 or 6]
         context = self.dropout(F.relu(pointwise_conv(self.context_embed, cv.transpose(1, 2))))
         graph = self.graph_descriptor(obs["context"][..., 0])
         target = self.embed_glove(obs["target_embedding"])
         if self.config.target_context:
-            target = target + target_context_input(obs, self.embed_target_context)
+            target = target + target_context_input(
+                obs, self.embed_target_context, self.config.context_distance
+            )
         target = F.relu(target)
         described = {"context": context, "graph": graph, "target": target}
         if self.config.semantic_map:

@@ -131,21 +131,31 @@ def target_row(context: Tensor, target_index: Tensor) -> Tensor:
     return row * (target_index >= 0).to(row.dtype).unsqueeze(-1)
 
 
-def target_context_input(obs: dict[str, Tensor], layer: nn.Module) -> Tensor:
-    """``model.target_context``'s term of a target descriptor: ``layer`` (4 -> the descriptor's width)
-    of the target category's own context row, added to the descriptor's GloVe term before its
-    activation (docs/model.md, "Target context")."""
-    row = target_row(obs["context"], obs["target_index"])
+def target_context_input(obs: dict[str, Tensor], layer: nn.Module, with_distance: bool = False) -> Tensor:
+    """``model.target_context``'s term of a target descriptor: ``layer`` (4 -> the descriptor's width;
+    5 ``with_distance``) of the target category's own context row, added to the descriptor's GloVe
+    term before its activation (docs/model.md, "Target context")."""
+    context = observed_context(obs, with_distance)
+    row = target_row(context, obs["target_index"])
     return layer(row.unsqueeze(-1)).squeeze(-1) if isinstance(layer, nn.Conv1d) else layer(row)
 
 
-def context_vector(obs: dict[str, Tensor], category_glove: Tensor) -> Tensor:
-    """The paper's context vector per category, ``[B, C, 5] = [B_inview, x_c, y_c, A_bbox, CS]``.
+def observed_context(obs: dict[str, Tensor], with_distance: bool = False) -> Tensor:
+    """``obs["context"]`` ``[B, C, 4]``, and ``with_distance`` its fifth column
+    ``obs["context_distance"]`` (``model.context_distance``)."""
+    if not with_distance:
+        return obs["context"]
+    return torch.cat([obs["context"], obs["context_distance"].unsqueeze(-1)], dim=-1)
+
+
+def context_vector(obs: dict[str, Tensor], category_glove: Tensor, with_distance: bool = False) -> Tensor:
+    """The paper's context vector per category, ``[B, C, 5] = [B_inview, x_c, y_c, A_bbox, CS]``
+    (``with_distance``: ``[B, C, 6]``, the distance before CS).
 
     The first four columns come from the observation; CS is computed here for *every* category, in
     view or not (as MJOLNIR fills its fifth column)."""
     cs = target_similarity(obs["target_embedding"], category_glove)
-    return torch.cat([obs["context"], cs.unsqueeze(-1)], dim=-1)
+    return torch.cat([observed_context(obs, with_distance), cs.unsqueeze(-1)], dim=-1)
 
 
 def normalized_adjacency_parameter(adjacency) -> nn.Parameter:

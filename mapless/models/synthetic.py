@@ -22,6 +22,7 @@ def synthetic_observations(
     xy = torch.rand(batch_size, c, 2, generator=generator)
     area = torch.rand(batch_size, c, 1, generator=generator) * 0.2
     context = torch.cat([in_view.unsqueeze(-1), xy, area], dim=-1) * in_view.unsqueeze(-1)
+    distance = (0.5 + 4.0 * torch.rand(batch_size, c, generator=generator)) * in_view
     features = torch.rand(batch_size, f, 7, 7, generator=generator)
     target_index = torch.randint(0, c, (batch_size,), generator=generator)
     glove = torch.tensor(knowledge.glove, dtype=torch.float32)
@@ -30,4 +31,5 @@ def synthetic_observations(
         "features": features,
         "target_embedding": glove[target_index].clone(),
         "target_index": target_index,
+        "context_distance": distance,
     }

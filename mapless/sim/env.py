@@ -67,6 +67,7 @@ class NavEnv(gym.Env):
                 "features": spaces.Box(0.0, 1.0, (n_cat + 3, 7, 7), np.float32),
                 "target_embedding": spaces.Box(-np.inf, np.inf, (300,), np.float32),
                 "target_index": spaces.Box(-1, n_cat - 1, (), np.int64),
+                "context_distance": spaces.Box(0.0, np.inf, (n_cat,), np.float32),
             }
         )
         self._next_fixed = 0

@@ -30,7 +30,7 @@ from mapless.sim.task import (
 )
 
 #: Every observation key a model can read (docs/observations.md).
-OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index")
+OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index", "context_distance")
 
 
 @dataclass
@@ -236,6 +236,22 @@ class BatchedNavEnv:
         return out
 
     @functools.cached_property
+    def context_distance(self) -> np.ndarray:
+        """Float32 ``[poses, C]``: the distance (m, the success rule's) from each pose to the nearest
+        in-view instance of each category, 0 where none is in view: what a depth reading at each
+        context box would add to the context vector (``model.context_distance``); made when first read."""
+        rows = self.targets.categories.type_to_index
+        out = np.full((self.n_poses, len(self.targets.categories)), np.inf, dtype=np.float32)
+        for name, data in zip(self.scene_names, self._datas, strict=True):
+            poses = np.repeat(np.arange(data.n_poses), np.diff(data.view_ptr)) + self.scene_offset[name]
+            row_of = np.array([rows.get(t, -1) for t in data.instance_types], dtype=np.int64)
+            cats = row_of[data.view_instance] if len(data.view_instance) else np.zeros(0, dtype=np.int64)
+            known = cats >= 0
+            np.minimum.at(out, (poses[known], cats[known]), data.view_distance[known].astype(np.float32))
+        out[np.isinf(out)] = 0.0
+        return out
+
+    @functools.cached_property
     def features(self) -> np.ndarray:
         """Every scene's feature maps as one pose-indexed array, made when first read: an environment
         for a model that never reads them (cvmeta, mjolnir_o, mlp) holds no second copy of the
@@ -254,6 +270,8 @@ class BatchedNavEnv:
                 out[key] = self.target_embedding.copy()
             elif key == "target_index":
                 out[key] = self.target_index.copy()
+            elif key == "context_distance":
+                out[key] = self.context_distance[self.pose]
             else:
                 raise KeyError(f"unknown observation key {key!r}")
         return out
