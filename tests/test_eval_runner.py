@@ -58,6 +58,7 @@ def test_oracle_scores_perfectly(episodes):
         assert data.target_distances(e.target)[r.poses[-1]] == 0
     # It first sees the target where it stops: its last move (the start, for a one-step episode).
     assert [r.first_seen for r in run.results] == [r.length - 1 for r in run.results]
+    assert all(r.ended_in_frame for r in run.results)
 
 
 def test_results_independent_of_workers_and_batch_neighbours(episodes):
@@ -98,6 +99,15 @@ def test_random_policy_samples_uniformly_and_respects_limits(episodes):
     assert all(0 <= r.first_seen <= r.length - 1 for r in run.results if r.success)
     assert all(-1 <= r.first_seen <= r.length for r in run.results)
     assert sum(r.first_seen >= 0 for r in run.results) > sum(r.success for r in run.results)
+    # Where it ended, a target instance is in the frame exactly when the scene's view list says so.
+    lib, by_index = fixture_library(), episodes * 4
+    for r in run.results:
+        data, e = lib[r.scene], by_index[r.index]
+        in_view = set(data.in_view(r.poses[-1]).tolist()) & set(
+            data.goal_instances(e.target, e.target_ids).tolist()
+        )
+        assert r.ended_in_frame == bool(in_view)
+    assert any(r.ended_in_frame and not r.success for r in run.results if r.called_done)
 
 
 def test_greedy_ignores_the_sampling_seed(episodes):

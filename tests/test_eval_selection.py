@@ -142,22 +142,23 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
     assert evaluated()
     cache.write_text(cache.read_text()[:100])  # torn by an older, non-atomic writer
     assert evaluated() and json.loads(cache.read_text())["episodes"]
-    # Results cached before first sights were recorded: filled in from their poses, and stored.
+    # Results cached before sightings were recorded: filled in from their poses, and stored.
     stored = json.loads(cache.read_text())
-    recorded = [e["first_seen"] for e in stored["episodes"]]
-    assert all(f is not None for f in recorded)
+    recorded = [(e["first_seen"], e["ended_in_frame"]) for e in stored["episodes"]]
+    assert all(f is not None and i is not None for f, i in recorded)
     first = stored["episodes"][0]
-    if first["first_seen"] == -1 and first["length"] >= 3:  # as if its third move had found a target
-        first["poses"][2] = int(
-            np.flatnonzero(fixture_library()[episodes[0].scene].goal_mask(episodes[0].target))[0]
-        )
-        recorded[0] = 3
+    assert first["first_seen"] == -1 and first["length"] >= 3  # never saw it; as if its third move had:
+    first["poses"][2] = int(
+        np.flatnonzero(fixture_library()[episodes[0].scene].goal_mask(episodes[0].target))[0]
+    )
+    recorded[0] = (3, recorded[0][1])
     for e in stored["episodes"]:
-        del e["first_seen"]
+        del e["first_seen"], e["ended_in_frame"]
     cache.write_text(json.dumps({**stored, "seconds": -1.0}))
     run = cached_evaluate(spec, episodes, settings, scenes, cache)
-    assert run.seconds == -1.0 and [r.first_seen for r in run.results] == recorded
-    assert [e["first_seen"] for e in json.loads(cache.read_text())["episodes"]] == recorded
+    assert run.seconds == -1.0 and [(r.first_seen, r.ended_in_frame) for r in run.results] == recorded
+    stored = json.loads(cache.read_text())["episodes"]
+    assert [(e["first_seen"], e["ended_in_frame"]) for e in stored] == recorded
 
 
 @pytest.mark.usefixtures("single_torch_thread")

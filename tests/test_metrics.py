@@ -20,10 +20,10 @@ from mapless.evaluate.metrics import (
     compared_metrics,
     exploration_curve,
     exploration_ratio,
-    first_sight,
     in_l5,
     main_metrics,
     register,
+    sightings,
     spl,
     summarize,
 )
@@ -181,27 +181,45 @@ def test_episodes_stored_without_poses_are_left_out_of_the_exploration_ratio_eve
     assert math.isnan(seed_estimates([bare])["exploration_ratio"].mean)
 
 
-def test_first_sight_is_the_first_step_on_a_pose_that_sees_the_target():
+def test_sightings_are_the_first_step_that_sees_the_target_and_the_last_pose_in_frame():
     sees = np.zeros(8, dtype=bool)
     sees[[4, 6]] = True
-    assert first_sight(sees, 0, [1, 2, 4, 5, 6]) == 3  # path 0, 1, 2, 4: step 3
-    assert first_sight(sees, 6, [5, 4]) == 0  # the start sees it
-    assert first_sight(sees, 0, [1, 1, 2]) == -1
-    assert first_sight(sees, 0, []) == -1  # no step taken
+    in_frame = sees.copy()
+    in_frame[[2, 5]] = True  # in the frame, out of the rule's reach
+    assert sightings(sees, in_frame, 0, [1, 2, 4, 5, 6]) == (3, True)  # path 0, 1, 2, 4: step 3
+    assert sightings(sees, in_frame, 6, [5, 4, 7]) == (0, False)  # the start sees it; ends out of frame
+    assert sightings(sees, in_frame, 0, [1, 1, 2]) == (-1, True)  # never saw it; ends with it too far
+    assert sightings(sees, in_frame, 0, []) == (-1, False)  # no step taken
 
 
-def test_seen_rate_counts_episodes_that_saw_the_target_and_skips_unrecorded_ones():
-    seen_at = [2, -1, 0, None]  # saw it; never; from the start; cached before it was recorded
-    results = [dataclasses.replace(ep(i, i == 2, 4, 4), first_seen=f) for i, f in enumerate(seen_at)]
+def test_seen_and_short_done_rates_count_recorded_episodes_only():
+    # (success, called Done, first seen, ended in frame): a success; a timeout that saw it; a Done
+    # with the target in the frame but too far; a Done with nothing in the frame; cached before both
+    # were recorded.
+    rows = [
+        (True, True, 2, True),
+        (False, False, 1, False),
+        (False, True, -1, True),
+        (False, True, -1, False),
+    ]
+    results = [
+        dataclasses.replace(ep(i, s, 4, 4, done=d), first_seen=f, ended_in_frame=e)
+        for i, (s, d, f, e) in enumerate(rows)
+    ]
+    results.append(ep(4, False, 4, 4))
     m = aggregate(results)
-    assert m["seen_rate"] == pytest.approx(2 / 3) and m["success"] == pytest.approx(1 / 4)
-    assert seed_estimates([results])["seen_rate"].episodes == 3
-    assert math.isnan(aggregate(results[3:])["seen_rate"])
-    # Stored and read back whole, and an old record without the field reads as unrecorded.
+    assert m["seen_rate"] == pytest.approx(2 / 4) and m["success"] == pytest.approx(1 / 5)
+    assert m["short_done_rate"] == pytest.approx(1 / 4) and m["false_done_rate"] == pytest.approx(3 / 5)
+    assert seed_estimates([results])["seen_rate"].episodes == 4
+    assert math.isnan(aggregate(results[4:])["seen_rate"])
+    assert math.isnan(aggregate(results[4:])["short_done_rate"])
+    # Stored and read back whole, and an old record without the fields reads as unrecorded.
     assert EpisodeResult.from_dict(results[1].to_dict()) == results[1]
     old = results[1].to_dict()
-    del old["first_seen"]
-    assert EpisodeResult.from_dict(old).first_seen is None
+    del old["first_seen"], old["ended_in_frame"]
+    assert EpisodeResult.from_dict(old) == dataclasses.replace(
+        results[1], first_seen=None, ended_in_frame=None
+    )
 
 
 def test_report_cells_and_table():
@@ -328,7 +346,7 @@ def test_metric_declarations_are_checked():
         difference_estimates([[ep(0, True, 4, 4)]], [[ep(0, True, 4, 4)]], ["failed_action_rate"])
     # The tables' column groups and what compare shows are the declarations' (in declaration order).
     assert main_metrics() == ("success", "spl", "l5_success", "l5_spl")
-    assert compared_metrics() == (*main_metrics(), "false_done_rate", "seen_rate")
+    assert compared_metrics() == (*main_metrics(), "false_done_rate", "seen_rate", "short_done_rate")
     assert [METRICS[k].scale for k in ("success", "ep_length")] == [100.0, 1.0]
 
 

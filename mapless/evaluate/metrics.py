@@ -50,6 +50,9 @@ class EpisodeResult:
     #: the start), -1 if never: whether the agent's search found the target, whatever its stop did.
     #: None where not recorded (results cached before 2026-12-06 that nothing has filled in since).
     first_seen: int | None = None
+    #: A target instance was in the frame, at any distance, where the episode ended (None: not
+    #: recorded). With a failed ``Done``: the agent stopped short of the success rule's reach.
+    ended_in_frame: bool | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -83,13 +86,16 @@ def same_actions(a: Sequence[EpisodeResult], b: Sequence[EpisodeResult]) -> int:
     return sum(x.actions == y.actions for x, y in zip(a, b, strict=True))
 
 
-def first_sight(goal_mask: np.ndarray, start_pose: int, poses: Sequence[int]) -> int:
-    """:attr:`EpisodeResult.first_seen` of a trajectory: the first step index at which the agent
-    stood on a pose of ``goal_mask`` (bool ``[P]``: a target instance visible), 0 being the start,
-    -1 if it never did."""
+def sightings(
+    goal_mask: np.ndarray, frame_mask: np.ndarray, start_pose: int, poses: Sequence[int]
+) -> tuple[int, bool]:
+    """:attr:`EpisodeResult.first_seen` and :attr:`~EpisodeResult.ended_in_frame` of a trajectory:
+    the first step index at which the agent stood on a pose of ``goal_mask`` (bool ``[P]``: a target
+    instance visible), 0 being the start, -1 if it never did; and whether its last pose is one of
+    ``frame_mask`` (a target instance in the frame at any distance)."""
     path = np.concatenate([[start_pose], np.asarray(poses, dtype=np.int64)]).astype(np.int64)
     hits = np.flatnonzero(goal_mask[path])
-    return int(hits[0]) if len(hits) else -1
+    return (int(hits[0]) if len(hits) else -1), bool(frame_mask[path[-1]])
 
 
 def exploration_counts(poses: Sequence[int]) -> np.ndarray:
@@ -131,7 +137,8 @@ def exploration_curve(
 
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     """Per-episode arrays: success, spl, l5 membership, length, done, false done (``Done`` with no
-    target instance visible), failed-action share, exploration, seen (NaN where not recorded)."""
+    target instance visible), failed-action share, exploration, seen, short done (a false done with a
+    target instance in the frame; NaN where not recorded)."""
     n = len(results)
     values = {
         "success": np.fromiter((r.success for r in results), dtype=np.float64, count=n),
@@ -153,6 +160,16 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
         ),
         "seen": np.fromiter(
             (np.nan if r.first_seen is None else float(r.first_seen >= 0) for r in results),
+            dtype=np.float64,
+            count=n,
+        ),
+        "short_done": np.fromiter(
+            (
+                np.nan
+                if r.ended_in_frame is None
+                else float(r.called_done and not r.success and r.ended_in_frame)
+                for r in results
+            ),
             dtype=np.float64,
             count=n,
         ),
@@ -242,6 +259,8 @@ register(Metric("exploration_ratio", "explore", "exploration", table="details"))
 #: The SR an oracle stop would give (Done at the first sight of the target): SR against it splits a
 #: model's failures into search (never saw the target) and stopping (saw it, did not end there).
 register(Metric("seen_rate", "seen", "seen", table="details", compared=True))
+#: The false Dones that had the target in the frame, out of the rule's reach: a judgement of distance.
+register(Metric("short_done_rate", "short Done", "short_done", table="details", compared=True))
 register(Metric("reward", "reward", "reward", percent=False, interval=False))
 
 

@@ -38,7 +38,7 @@ from mapless.agent.acting import sample_actions
 from mapless.agent.episode_loop import EpisodeLoop
 from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, OracleAgent
 from mapless.errors import MaplessError
-from mapless.evaluate.metrics import EpisodeResult, first_sight
+from mapless.evaluate.metrics import EpisodeResult, sightings
 from mapless.offline import offline_library
 from mapless.scenes.catalogue import room_type_of
 from mapless.sim.cache import fingerprint
@@ -172,37 +172,42 @@ class EvalSettings:
     category_set: str = "mjolnir101"
 
 
-class GoalMasks:
-    """Per episode target, the poses of its scene where a target instance is visible (the success
-    rule's), computed once per (scene, target, instances)."""
+class Sightings:
+    """An episode's :func:`~mapless.evaluate.metrics.sightings` from its trajectory, with the masks of
+    its target's poses (visible under the success rule; in the frame) made once per (scene, target,
+    instances)."""
 
     def __init__(self, library: SceneLibrary):
         self.library = library
-        self._masks: dict[tuple, np.ndarray] = {}
+        self._masks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
-    def __call__(self, episode: Episode) -> np.ndarray:
+    def __call__(self, episode: Episode, start_pose: int, poses: Sequence[int]) -> dict:
         key = (episode.scene, episode.target, episode.target_ids)
         if key not in self._masks:
             data = self.library[episode.scene]
-            self._masks[key] = data.goal_mask_for_instances(
-                data.goal_instances(episode.target, episode.target_ids)
+            instances = data.goal_instances(episode.target, episode.target_ids)
+            self._masks[key] = (
+                data.goal_mask_for_instances(instances),
+                data.in_frame_mask_for_instances(instances),
             )
-        return self._masks[key]
+        first_seen, ended_in_frame = sightings(*self._masks[key], start_pose, poses)
+        return {"first_seen": first_seen, "ended_in_frame": ended_in_frame}
 
 
-def with_first_seen(
+def with_sightings(
     results: Sequence[EpisodeResult], episodes: Sequence[Episode], library: SceneLibrary
 ) -> list[EpisodeResult]:
-    """``results`` (of ``episodes``, by index) with :attr:`EpisodeResult.first_seen` filled in from
-    their recorded poses where it is missing (results cached before it was recorded)."""
-    masks = GoalMasks(library)
+    """``results`` (of ``episodes``, by index) with their sightings (:attr:`EpisodeResult.first_seen`,
+    :attr:`~EpisodeResult.ended_in_frame`) filled in from their recorded poses where missing (results
+    cached before they were recorded)."""
+    sight = Sightings(library)
     filled = []
     for r in results:
-        if r.first_seen is None:
+        if r.first_seen is None or r.ended_in_frame is None:
             episode = episodes[r.index]
             if episode.episode_id != r.episode_id:
                 raise MaplessError(f"result {r.index} is of episode {r.episode_id}, not {episode.episode_id}")
-            r = dataclasses.replace(r, first_seen=first_sight(masks(episode), r.start_pose, r.poses))
+            r = dataclasses.replace(r, **sight(episode, r.start_pose, r.poses))
         filled.append(r)
     return filled
 
@@ -236,7 +241,7 @@ class _EvaluationRecorder:
         self.offsets = np.zeros(batch, dtype=np.int64)
         self.results: list[EpisodeResult] = []
         self.t = np.zeros(batch, dtype=np.int64)  # each slot's step index when it last acted
-        self.goal_masks: GoalMasks | None = None
+        self.sightings: Sightings | None = None
 
     def feed(self, free: np.ndarray) -> list[Episode]:
         items = [self.queue.pop() for _ in free[: len(self.queue)]]
@@ -270,7 +275,7 @@ class _EvaluationRecorder:
         self.actions[act, t[act]] = actions[act]
         self.failed += step.failed_action
         self.reward += step.reward
-        self.goal_masks = self.goal_masks or GoalMasks(env.library)
+        self.sightings = self.sightings or Sightings(env.library)
         for slot in np.flatnonzero(step.terminated | step.truncated):
             item = int(self.slot_item[slot])
             episode = self.episodes[item]
@@ -292,7 +297,7 @@ class _EvaluationRecorder:
                     start_pose=int(self.start_pose[slot]),
                     poses=tuple(poses.tolist()),
                     actions=tuple(self.actions[slot, :length].tolist()),
-                    first_seen=first_sight(self.goal_masks(episode), int(self.start_pose[slot]), poses),
+                    **self.sightings(episode, int(self.start_pose[slot]), poses),
                 )
             )
             self.slot_item[slot] = -1

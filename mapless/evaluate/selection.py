@@ -23,7 +23,7 @@ from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, aggregate, main_metrics
 from mapless.evaluate.report import read_json, write_json
-from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate, with_first_seen
+from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate, with_sightings
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
 
@@ -164,8 +164,8 @@ def cached_evaluate(
             stored = {}
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
-            if any(r.first_seen is None for r in results):  # cached before it was recorded
-                results = with_first_seen(results, episodes, library.build())
+            if any(r.first_seen is None or r.ended_in_frame is None for r in results):  # cached before
+                results = with_sightings(results, episodes, library.build())
                 _store(cache, key, stored["seconds"], stored["steps"], results)
             return EvalRun(results, stored["seconds"], stored["steps"])
     run = evaluate(spec, episodes, settings, library)

@@ -127,6 +127,14 @@ class SceneData:
         mask[poses[np.isin(inst, instances)]] = True
         return mask
 
+    def in_frame_mask_for_instances(self, instances: np.ndarray) -> np.ndarray:
+        """Bool ``[P]``: poses with one of ``instances`` in the frame at any distance (a superset of
+        :meth:`goal_mask_for_instances`'s poses)."""
+        poses = np.repeat(np.arange(self.n_poses), np.diff(self.view_ptr))
+        mask = np.zeros(self.n_poses, dtype=bool)
+        mask[poses[np.isin(self.view_instance, instances)]] = True
+        return mask
+
     @functools.cached_property
     def predecessors(self) -> list[np.ndarray]:
         preds: list[list[int]] = [[] for _ in range(self.n_poses)]
