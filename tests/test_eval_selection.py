@@ -16,7 +16,7 @@ from mapless.checkpoint import load_file, training_clock
 from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
-from mapless.evaluate.figures import validation_figure
+from mapless.evaluate.figures import MODEL_COLOURS, model_style, validation_figure
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
 from mapless.evaluate.selection import (
     best_index,
@@ -70,6 +70,11 @@ def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path
     }
     assert validation_figure({"a3c": [seed, seed], "cvmeta": [old_record]}, tmp_path / "v.png")
     assert (tmp_path / "v.png").stat().st_size > 10_000
+
+
+def test_every_model_of_a_figure_gets_its_own_style_past_the_palette():
+    styles = [model_style(i) for i in range(2 * len(MODEL_COLOURS))]
+    assert len(set(styles)) == len(styles)
 
 
 def test_paper_protocol_is_labelled():

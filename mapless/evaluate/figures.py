@@ -64,6 +64,13 @@ def exploration_figure(
     return curves
 
 
+def model_style(i: int) -> tuple[str, str]:
+    """Colour and line format of the ``i``-th model of a figure: the palette's colours solid, then
+    again dashed with square markers (an ablation has more rows than the palette has colours)."""
+    colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
+    return colour, ("o-", "s--", "^:")[(i // len(MODEL_COLOURS)) % 3]
+
+
 def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -> bool:
     """Validation SR at every snapshot a selection scored, against training frames (left) and
     training minutes (right): one colour per model, one line per seed, the chosen snapshot ringed.
@@ -87,14 +94,14 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
     fig, axes = plt.subplots(1, 2, figsize=(11, 4 + 0.3 * legend_rows), sharey=True)
     labelled = set()  # one legend entry per model, however many seeds
     for i, label, chosen, points in seeds:
-        colour = MODEL_COLOURS[i % len(MODEL_COLOURS)]
+        colour, line = model_style(i)
         for ax, key, scale in ((axes[0], "frames", 1e-3), (axes[1], "minutes", 1.0)):
             kept = [
                 (c[key] * scale, 100 * c["success"], c["path"] == chosen)
                 for c in points
                 if c.get(key) is not None
             ]
-            ax.plot([x for x, _, _ in kept], [y for _, y, _ in kept], "o-", color=colour, markersize=3.5,
+            ax.plot([x for x, _, _ in kept], [y for _, y, _ in kept], line, color=colour, markersize=3.5,
                     label=None if label in labelled else label)  # fmt: skip
             for x, y, _ in filter(lambda point: point[2], kept):  # the selected snapshot, ringed
                 ax.plot(x, y, "o", markersize=11, markerfacecolor="none", markeredgecolor=colour)
