@@ -380,7 +380,7 @@ def test_cvmeta_reads_the_semantic_map_only_with_the_option(tiny):
     assert "embed_map.weight" not in with_map.inner_parameter_names()
 
 
-def test_cvmeta_reads_the_context_distance_only_with_the_option(tiny):
+def test_models_read_the_context_distance_only_with_the_option(tiny):
     """``model.context_distance`` adds a distance column to cvmeta's context vector and to its target
     row; without it the observation key is never read (so no environment computes it)."""
     gen = torch.Generator().manual_seed(6)
@@ -397,6 +397,12 @@ def test_cvmeta_reads_the_context_distance_only_with_the_option(tiny):
     assert torch.equal(without(*args(obs)).logits, without(*args(moved)).logits)
     assert "context_distance" in observation_keys(with_distance)
     assert "context_distance" not in observation_keys(without)
+    # SAVN's embedding (a3c and its kin) reads it in the target row only.
+    a3c = build_model("a3c", context_distance=True, **small).eval()
+    assert a3c.embed_target_context.weight.shape[1] == 5 and "context_distance" in observation_keys(a3c)
+    far = {**obs, "context_distance": obs["context_distance"].clone()}
+    far["context_distance"][torch.arange(2), obs["target_index"]] += 1.0
+    assert not torch.allclose(a3c(*args(obs)).logits, a3c(*args(far)).logits)
 
 
 def test_adapt_none_makes_an_adaptive_model_a_plain_recurrent_policy(tiny):

@@ -40,7 +40,7 @@ class SavnEmbeddingMixin:
         self.conv1 = nn.Conv2d(self.feature_channels, EMBED, 1)
         self.embed_glove = nn.Linear(self.glove_dim, EMBED)
         if self.config.target_context:
-            self.embed_target_context = nn.Linear(4, EMBED)
+            self.embed_target_context = nn.Linear(4 + int(self.config.context_distance), EMBED)
         self.embed_action = nn.Linear(NUM_ACTIONS, 10)
         self.pointwise = nn.Conv2d(EMBED + EMBED + 10, EMBED, 1)
         self.dropout = Dropout(self.config.dropout)
@@ -49,7 +49,9 @@ class SavnEmbeddingMixin:
         image = self.dropout(F.relu(pointwise_conv(self.conv1, obs["features"])))
         target = self.embed_glove(obs["target_embedding"])
         if self.config.target_context:
-            target = target + target_context_input(obs, self.embed_target_context)
+            target = target + target_context_input(
+                obs, self.embed_target_context, self.config.context_distance
+            )
         glove = tile(F.relu(target), GRID, GRID)
         action = tile(F.relu(self.embed_action(prev_policy)), GRID, GRID)
         x = torch.cat([image, glove, action], dim=1)

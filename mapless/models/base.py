@@ -106,11 +106,12 @@ class ModelConfig:
         walls, depth; docs/observations.md) through a 1x1 convolution to 16 channels, flattened into
         its LSTM input. Not in the paper, whose model sees the scene only through context vectors
         and the graph (the cvmeta ablation's row e).
-    context_distance: cvmeta's context vector gains a column per category, the distance (m) to its
-        nearest in-view instance (0 when none is in view; ``obs["context_distance"]``), in the
-        context embedding and the target descriptor's context row: what a depth reading at each
-        box adds. Not in the paper, whose boxes carry no depth: cvmeta's false Dones are `Done`s
-        with the target in the frame but beyond the success rule's 1.5 m (docs/learning.md).
+    context_distance: the context rows a model reads gain a column, the distance (m) to the
+        category's nearest in-view instance (0 when none is in view; ``obs["context_distance"]``):
+        what a depth reading at each box adds. cvmeta: every category's context vector and its
+        target row; a3c, savn, sp, gve, mjolnir_r: the target row (with ``target_context``). Not in
+        any paper, whose boxes carry no depth: cvmeta's false Dones are `Done`s with the target in
+        the frame beyond the success rule's 1.5 m (docs/learning.md).
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
         that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
