@@ -89,8 +89,10 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
     if not any(points for *_, points in seeds):
         return False
     plt = _pyplot()
-    models = len({label for _, label, _, _ in seeds})
-    legend_rows = 0 if models <= 4 else (models + 1) // 2  # many rows go below the curves
+    labels = {label for _, label, _, _ in seeds}
+    # Many or long labels go below the curves: inside an axes they squeeze it.
+    below = len(labels) > 4 or max(len(label) for label in labels) > 40
+    legend_rows = (len(labels) + 1) // 2 if below else 0
     fig, axes = plt.subplots(1, 2, figsize=(11, 4 + 0.3 * legend_rows), sharey=True)
     labelled = set()  # one legend entry per model, however many seeds
     for i, label, chosen, points in seeds:
