@@ -9,6 +9,7 @@ episodes, an optimistic estimate; every report made with it says so.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from collections.abc import Callable, Sequence
@@ -26,6 +27,7 @@ from mapless.evaluate.report import read_json, write_json
 from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate, with_sightings
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
+from mapless.sim.library import SceneLibrary
 
 
 def load_episodes(
@@ -165,13 +167,20 @@ def cached_evaluate(
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
             if any(r.first_seen is None or r.ended_in_frame is None for r in results):  # cached before
-                results = with_sightings(results, episodes, library.build())
+                results = with_sightings(results, episodes, _scenes(library))
                 _store(cache, key, stored["seconds"], stored["steps"], results)
             return EvalRun(results, stored["seconds"], stored["steps"])
     run = evaluate(spec, episodes, settings, library)
     if cache is not None:
         _store(cache, key, run.seconds, run.steps, run.results)
     return run
+
+
+@functools.lru_cache(maxsize=1)
+def _scenes(library: LibrarySpec) -> SceneLibrary:
+    """One library for the caches of one report: each run's caches fill their sightings from the
+    same scenes, loaded once instead of once per cache file."""
+    return library.build()
 
 
 def _store(cache: Path, key: dict, seconds: float, steps: int, results: list[EpisodeResult]) -> None:
