@@ -22,9 +22,11 @@ def synthetic_observations(
     xy = torch.rand(batch_size, c, 2, generator=generator)
     area = torch.rand(batch_size, c, 1, generator=generator) * 0.2
     context = torch.cat([in_view.unsqueeze(-1), xy, area], dim=-1) * in_view.unsqueeze(-1)
-    distance = (0.5 + 4.0 * torch.rand(batch_size, c, generator=generator)) * in_view
     features = torch.rand(batch_size, f, 7, 7, generator=generator)
     target_index = torch.randint(0, c, (batch_size,), generator=generator)
+    # From the box area, not a draw of its own: a caller's generator (and every golden capture made
+    # from its stream) goes on as before the distance existed. Larger boxes are nearer, 0.5-4.5 m.
+    distance = (4.5 - 20.0 * area.squeeze(-1)) * in_view
     glove = torch.tensor(knowledge.glove, dtype=torch.float32)
     return {
         "context": context,
