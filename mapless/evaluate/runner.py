@@ -225,6 +225,7 @@ class _EvaluationRecorder:
         settings: EvalSettings,
         batch: int,
         horizon: int,
+        sightings: Sightings,
     ):
         self.agent, self.episodes, self.indices, self.settings = agent, episodes, indices, settings
         self.observation_keys = agent.observation_keys
@@ -241,7 +242,7 @@ class _EvaluationRecorder:
         self.offsets = np.zeros(batch, dtype=np.int64)
         self.results: list[EpisodeResult] = []
         self.t = np.zeros(batch, dtype=np.int64)  # each slot's step index when it last acted
-        self.sightings: Sightings | None = None
+        self.sightings = sightings
 
     def feed(self, free: np.ndarray) -> list[Episode]:
         items = [self.queue.pop() for _ in free[: len(self.queue)]]
@@ -275,7 +276,6 @@ class _EvaluationRecorder:
         self.actions[act, t[act]] = actions[act]
         self.failed += step.failed_action
         self.reward += step.reward
-        self.sightings = self.sightings or Sightings(env.library)
         for slot in np.flatnonzero(step.terminated | step.truncated):
             item = int(self.slot_item[slot])
             episode = self.episodes[item]
@@ -320,7 +320,7 @@ def run_episodes(
         max_steps=settings.max_steps,
     )  # fmt: skip
     horizon = settings.max_steps or max(max_steps_for(library[s].room_type, "eval") for s in scenes)
-    recorder = _EvaluationRecorder(agent, episodes, indices, settings, batch, horizon)
+    recorder = _EvaluationRecorder(agent, episodes, indices, settings, batch, horizon, Sightings(library))
     EpisodeLoop(env, recorder, recorder.feed, start_every=agent.start_every).run()
     return sorted(recorder.results, key=lambda r: r.index)
 

@@ -112,10 +112,14 @@ class SceneData:
         return np.array([index[i] for i in instance_ids], dtype=np.int64)
 
     @functools.cached_property
+    def view_pose(self) -> np.ndarray:
+        """The pose of each in-view entry, aligned with ``view_instance`` (the CSR rows expanded)."""
+        return np.repeat(np.arange(self.n_poses), np.diff(self.view_ptr))
+
+    @functools.cached_property
     def visible_matrix_csr(self) -> tuple[np.ndarray, np.ndarray]:
         """(pose, instance) pairs of the success rule, as two aligned arrays."""
-        poses = np.repeat(np.arange(self.n_poses), np.diff(self.view_ptr))
-        return poses[self.view_visible], self.view_instance[self.view_visible]
+        return self.view_pose[self.view_visible], self.view_instance[self.view_visible]
 
     def goal_mask(self, object_type: str) -> np.ndarray:
         """Bool ``[P]``: poses where some instance of ``object_type`` is visible."""
@@ -130,9 +134,8 @@ class SceneData:
     def in_frame_mask_for_instances(self, instances: np.ndarray) -> np.ndarray:
         """Bool ``[P]``: poses with one of ``instances`` in the frame at any distance (a superset of
         :meth:`goal_mask_for_instances`'s poses)."""
-        poses = np.repeat(np.arange(self.n_poses), np.diff(self.view_ptr))
         mask = np.zeros(self.n_poses, dtype=bool)
-        mask[poses[np.isin(self.view_instance, instances)]] = True
+        mask[self.view_pose[np.isin(self.view_instance, instances)]] = True
         return mask
 
     @functools.cached_property

@@ -21,6 +21,7 @@ from mapless.actions import DONE, N_MOVEMENT_ACTIONS
 from mapless.knowledge.parents import parent_reward
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
+from mapless.sim.scene_data import SceneData
 from mapless.sim.task import (
     RewardConfig,
     TargetFields,
@@ -225,29 +226,30 @@ class BatchedNavEnv:
     def visible_categories(self) -> np.ndarray:
         """Bool ``[poses, C]``: the category rows with an instance visible under the success rule at
         each pose (the parent bonus's ``visible`` rule); made when first read."""
-        rows = self.targets.categories.type_to_index
         out = np.zeros((self.n_poses, len(self.targets.categories)), dtype=bool)
         for name, data in zip(self.scene_names, self._datas, strict=True):
             poses, instances = data.visible_matrix_csr
-            row_of = np.array([rows.get(t, -1) for t in data.instance_types], dtype=np.int64)
-            cats = row_of[instances] if len(instances) else np.zeros(0, dtype=np.int64)
+            cats = self._category_rows(data)[instances]
             known = cats >= 0
             out[poses[known] + self.scene_offset[name], cats[known]] = True
         return out
+
+    def _category_rows(self, data: SceneData) -> np.ndarray:
+        """Int64 ``[instances]``: each of ``data``'s instances' row in the category set (-1: none)."""
+        rows = self.targets.categories.type_to_index
+        return np.array([rows.get(t, -1) for t in data.instance_types], dtype=np.int64)
 
     @functools.cached_property
     def context_distance(self) -> np.ndarray:
         """Float32 ``[poses, C]``: the distance (m, the success rule's) from each pose to the nearest
         in-view instance of each category, 0 where none is in view: what a depth reading at each
         context box would add to the context vector (``model.context_distance``); made when first read."""
-        rows = self.targets.categories.type_to_index
         out = np.full((self.n_poses, len(self.targets.categories)), np.inf, dtype=np.float32)
         for name, data in zip(self.scene_names, self._datas, strict=True):
-            poses = np.repeat(np.arange(data.n_poses), np.diff(data.view_ptr)) + self.scene_offset[name]
-            row_of = np.array([rows.get(t, -1) for t in data.instance_types], dtype=np.int64)
-            cats = row_of[data.view_instance] if len(data.view_instance) else np.zeros(0, dtype=np.int64)
+            cats = self._category_rows(data)[data.view_instance]
             known = cats >= 0
-            np.minimum.at(out, (poses[known], cats[known]), data.view_distance[known].astype(np.float32))
+            poses = data.view_pose[known] + self.scene_offset[name]
+            np.minimum.at(out, (poses, cats[known]), data.view_distance[known].astype(np.float32))
         out[np.isinf(out)] = 0.0
         return out
 
