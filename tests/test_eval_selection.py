@@ -20,8 +20,10 @@ from mapless.evaluate.figures import MODEL_COLOURS, model_style, validation_figu
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
 from mapless.evaluate.selection import (
     best_index,
+    cache_file,
     cached_evaluate,
     candidates,
+    episodes_digest,
     load_episodes,
     select_and_report,
 )
@@ -164,6 +166,22 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
     assert run.seconds == -1.0 and [(r.first_seen, r.ended_in_frame) for r in run.results] == recorded
     stored = json.loads(cache.read_text())["episodes"]
     assert [(e["first_seen"], e["ended_in_frame"]) for e in stored] == recorded
+
+
+def test_cache_files_keep_one_file_per_episode_set_and_adopt_files_named_before(tmp_path):
+    episodes = fixture_episodes(per_scene=2)
+    first, second = episodes[:3], episodes[3:]
+    a, b = cache_file(tmp_path, "val_model_8", first), cache_file(tmp_path, "val_model_8", second)
+    assert a != b and a.name.startswith("val_model_8_") and a.parent == tmp_path
+    assert cache_file(tmp_path, "val_model_8", list(first)) == a  # the same set: the same file
+    # A cache named before the digest moves to its set's name; one of another set stays where it is.
+    legacy = tmp_path / "val_model_8.json"
+    legacy.write_text(json.dumps({"key": {"episodes": episodes_digest(first)}, "marker": 1}))
+    assert cache_file(tmp_path, "val_model_8", second) == b and legacy.is_file()
+    assert cache_file(tmp_path, "val_model_8", first) == a and not legacy.exists()
+    assert json.loads(a.read_text())["marker"] == 1
+    legacy.write_text("{torn")  # unreadable: left alone, and the set gets its own file
+    assert cache_file(tmp_path, "val_model_8", second) == b and legacy.is_file()
 
 
 @pytest.mark.usefixtures("single_torch_thread")

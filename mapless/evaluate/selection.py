@@ -90,6 +90,24 @@ def episodes_digest(episodes: Sequence[Episode]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def cache_file(directory: Path, name: str, episodes: Sequence[Episode]) -> Path:
+    """Where ``directory`` caches one model file's results on ``episodes``: ``name`` (split and
+    model file) plus the set's digest, so that sets sharing a split name (an ``eval.select_file``
+    override, a published file) keep a file each instead of overwriting one another. A file named
+    before the digest (``name.json``) is renamed when it holds these episodes."""
+    digest = episodes_digest(episodes)
+    path = directory / f"{name}_{digest[:8]}.json"
+    legacy = directory / f"{name}.json"
+    if not path.exists() and legacy.is_file():
+        try:
+            key = read_json(legacy).get("key", {})
+        except (OSError, ValueError):
+            key = {}
+        if key.get("episodes") == digest:
+            legacy.replace(path)
+    return path
+
+
 def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
     """``(training episodes, model file)`` of every snapshot of a run, plus its final model when it
     is not already a snapshot of the same episode count."""
@@ -232,7 +250,7 @@ def select_and_report(
         label = f"{label}; chosen among the snapshots of the first {within_minutes:g} training minutes"
     for episodes_done, path, progress_at in found:
         spec = AgentSpec(checkpoint=str(path))
-        cache = run_dir / "eval" / f"{select_split}_{path.stem}.json"
+        cache = cache_file(run_dir / "eval", f"{select_split}_{path.stem}", select_episodes)
         run = cached_evaluate(spec, select_episodes, settings, library, cache)
         m = aggregate(run.results)
         scores.append(
@@ -251,7 +269,7 @@ def select_and_report(
     if p.select_split == p.report_split or report_episodes is None:
         report = runs[best]
     else:
-        cache = run_dir / "eval" / f"{report_split}_{Path(chosen).stem}.json"
+        cache = cache_file(run_dir / "eval", f"{report_split}_{Path(chosen).stem}", report_episodes)
         report = cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
     return Selection(protocol, label, chosen, int(scores[best]["episodes"]), scores, report)
 
