@@ -213,6 +213,10 @@ def test_seen_and_short_done_rates_count_recorded_episodes_only():
     assert seed_estimates([results])["seen_rate"].episodes == 4
     assert math.isnan(aggregate(results[4:])["seen_rate"])
     assert math.isnan(aggregate(results[4:])["short_done_rate"])
+    # Approach: a success's actions from its first sight on (its Done included), successes only.
+    assert m["approach_steps"] == pytest.approx(4 - 2)
+    more = dataclasses.replace(ep(5, True, 7, 4), first_seen=0, ended_in_frame=True)  # seen at the start
+    assert aggregate([*results, more])["approach_steps"] == pytest.approx((2 + 7) / 2)
     # Stored and read back whole, and an old record without the fields reads as unrecorded.
     assert EpisodeResult.from_dict(results[1].to_dict()) == results[1]
     old = results[1].to_dict()
@@ -346,7 +350,13 @@ def test_metric_declarations_are_checked():
         difference_estimates([[ep(0, True, 4, 4)]], [[ep(0, True, 4, 4)]], ["failed_action_rate"])
     # The tables' column groups and what compare shows are the declarations' (in declaration order).
     assert main_metrics() == ("success", "spl", "l5_success", "l5_spl")
-    assert compared_metrics() == (*main_metrics(), "false_done_rate", "seen_rate", "short_done_rate")
+    assert compared_metrics() == (
+        *main_metrics(),
+        "false_done_rate",
+        "seen_rate",
+        "short_done_rate",
+        "approach_steps",
+    )
     assert [METRICS[k].scale for k in ("success", "ep_length")] == [100.0, 1.0]
 
 

@@ -137,8 +137,9 @@ def exploration_curve(
 
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     """Per-episode arrays: success, spl, l5 membership, length, done, false done (``Done`` with no
-    target instance visible), failed-action share, exploration, seen, short done (a false done with a
-    target instance in the frame; NaN where not recorded)."""
+    target instance visible), failed-action share, exploration, seen, approach (a success's actions
+    from its first sight of the target on, Done included), short done (a false done with a target
+    instance in the frame); the last three NaN where not recorded or, for approach, not a success."""
     n = len(results)
     values = {
         "success": np.fromiter((r.success for r in results), dtype=np.float64, count=n),
@@ -160,6 +161,16 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
         ),
         "seen": np.fromiter(
             (np.nan if r.first_seen is None else float(r.first_seen >= 0) for r in results),
+            dtype=np.float64,
+            count=n,
+        ),
+        "approach": np.fromiter(
+            (
+                r.length - r.first_seen
+                if r.success and r.first_seen is not None and r.first_seen >= 0
+                else np.nan
+                for r in results
+            ),
             dtype=np.float64,
             count=n,
         ),
@@ -261,6 +272,9 @@ register(Metric("exploration_ratio", "explore", "exploration", table="details"))
 register(Metric("seen_rate", "seen", "seen", table="details", compared=True))
 #: The false Dones that had the target in the frame, out of the rule's reach: a judgement of distance.
 register(Metric("short_done_rate", "short Done", "short_done", table="details", compared=True))
+#: How a success ends: the actions from its first sight of the target to its Done. With the steps
+#: before it (length − approach), it splits a success's path, hence SPL, into search and approach.
+register(Metric("approach_steps", "approach", "approach", percent=False, table="details", compared=True))
 register(Metric("reward", "reward", "reward", percent=False, interval=False))
 
 
