@@ -168,20 +168,22 @@ def test_evaluation_cache_hits_and_misses(tmp_path):
     assert [(e["first_seen"], e["ended_in_frame"]) for e in stored] == recorded
 
 
-def test_cache_files_keep_one_file_per_episode_set_and_adopt_files_named_before(tmp_path):
+def test_cache_files_keep_one_file_per_episode_set_and_read_files_named_before(tmp_path):
     episodes = fixture_episodes(per_scene=2)
     first, second = episodes[:3], episodes[3:]
     a, b = cache_file(tmp_path, "val_model_8", first), cache_file(tmp_path, "val_model_8", second)
     assert a != b and a.name.startswith("val_model_8_") and a.parent == tmp_path
     assert cache_file(tmp_path, "val_model_8", list(first)) == a  # the same set: the same file
-    # A cache named before the digest moves to its set's name; one of another set stays where it is.
+    # A cache named before the digest serves its own set still; another set gets a file of its own.
     legacy = tmp_path / "val_model_8.json"
-    legacy.write_text(json.dumps({"key": {"episodes": episodes_digest(first)}, "marker": 1}))
-    assert cache_file(tmp_path, "val_model_8", second) == b and legacy.is_file()
-    assert cache_file(tmp_path, "val_model_8", first) == a and not legacy.exists()
-    assert json.loads(a.read_text())["marker"] == 1
+    legacy.write_text(json.dumps({"key": {"episodes": episodes_digest(first)}}))
+    assert cache_file(tmp_path, "val_model_8", first) == legacy
+    assert cache_file(tmp_path, "val_model_8", second) == b
+    a.write_text("{}")  # once the set has a file by its digest, that one is used
+    assert cache_file(tmp_path, "val_model_8", first) == a
+    a.unlink()
     legacy.write_text("{torn")  # unreadable: left alone, and the set gets its own file
-    assert cache_file(tmp_path, "val_model_8", second) == b and legacy.is_file()
+    assert cache_file(tmp_path, "val_model_8", first) == a and legacy.is_file()
 
 
 @pytest.mark.usefixtures("single_torch_thread")

@@ -94,7 +94,8 @@ def cache_file(directory: Path, name: str, episodes: Sequence[Episode]) -> Path:
     """Where ``directory`` caches one model file's results on ``episodes``: ``name`` (split and
     model file) plus the set's digest, so that sets sharing a split name (an ``eval.select_file``
     override, a published file) keep a file each instead of overwriting one another. A file named
-    before the digest (``name.json``) is renamed when it holds these episodes."""
+    before the digest (``name.json``) is still used where it holds these episodes, so paths to it
+    (in docs, in reports) stay valid."""
     digest = episodes_digest(episodes)
     path = directory / f"{name}_{digest[:8]}.json"
     legacy = directory / f"{name}.json"
@@ -104,7 +105,7 @@ def cache_file(directory: Path, name: str, episodes: Sequence[Episode]) -> Path:
         except (OSError, ValueError):
             key = {}
         if key.get("episodes") == digest:
-            legacy.replace(path)
+            return legacy
     return path
 
 
