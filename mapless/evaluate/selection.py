@@ -90,13 +90,12 @@ def episodes_digest(episodes: Sequence[Episode]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def cache_file(directory: Path, name: str, episodes: Sequence[Episode]) -> Path:
-    """Where ``directory`` caches one model file's results on ``episodes``: ``name`` (split and
-    model file) plus the set's digest, so that sets sharing a split name (an ``eval.select_file``
-    override, a published file) keep a file each instead of overwriting one another. A file named
-    before the digest (``name.json``) is still used where it holds these episodes, so paths to it
-    (in docs, in reports) stay valid."""
-    digest = episodes_digest(episodes)
+def cache_file(directory: Path, name: str, digest: str) -> Path:
+    """Where ``directory`` caches one model file's results on the episodes of ``digest``
+    (:func:`episodes_digest`): ``name`` (split and model file) plus the digest, so that sets sharing
+    a split name (an ``eval.select_file`` override, a published file) keep a file each instead of
+    overwriting one another. A file named before the digest (``name.json``) is still used where it
+    holds these episodes, so paths to it (in docs, in reports) stay valid."""
     path = directory / f"{name}_{digest[:8]}.json"
     legacy = directory / f"{name}.json"
     if not path.exists() and legacy.is_file():
@@ -249,9 +248,10 @@ def select_and_report(
                 "minutes (or no training log that dates them)"
             )
         label = f"{label}; chosen among the snapshots of the first {within_minutes:g} training minutes"
+    select_digest = episodes_digest(select_episodes)
     for episodes_done, path, progress_at in found:
         spec = AgentSpec(checkpoint=str(path))
-        cache = cache_file(run_dir / "eval", f"{select_split}_{path.stem}", select_episodes)
+        cache = cache_file(run_dir / "eval", f"{select_split}_{path.stem}", select_digest)
         run = cached_evaluate(spec, select_episodes, settings, library, cache)
         m = aggregate(run.results)
         scores.append(
@@ -270,7 +270,8 @@ def select_and_report(
     if p.select_split == p.report_split or report_episodes is None:
         report = runs[best]
     else:
-        cache = cache_file(run_dir / "eval", f"{report_split}_{Path(chosen).stem}", report_episodes)
+        name = f"{report_split}_{Path(chosen).stem}"
+        cache = cache_file(run_dir / "eval", name, episodes_digest(report_episodes))
         report = cached_evaluate(AgentSpec(checkpoint=chosen), report_episodes, settings, library, cache)
     return Selection(protocol, label, chosen, int(scores[best]["episodes"]), scores, report)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from mapless.evaluate.metrics import compared_metrics, same_actions
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
-from mapless.evaluate.selection import cache_file
+from mapless.evaluate.selection import cache_file, episodes_digest
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import Evaluator, experiment_scenes
@@ -220,7 +220,7 @@ def _unadapted(config: ExperimentConfig, ev: Evaluator, focus: str, row, run: di
     cfg = train_config(config, focus, seed=seed, extra=row.train or None)
     chosen = ev.chosen_model(Path(run["run_dir"]), run)
     name = f"unadapted_{Path(chosen).stem}_{len(ev.report_episodes)}"
-    cache = cache_file(Path(run["run_dir"]) / "eval", name, ev.report_episodes)
+    cache = cache_file(Path(run["run_dir"]) / "eval", name, episodes_digest(ev.report_episodes))
     return ev.on(ev.report_episodes, focus, cfg, chosen, cache, adapt=False)
 
 
@@ -287,7 +287,8 @@ def _shift_row(config: ExperimentConfig, ev: Evaluator, row: Row) -> tuple[dict[
         results, info = ev.trained(run.run_dir, run.config)
         chosen = ev.chosen_model(run.run_dir, info)
         out["default"].append(results)
-        cache = cache_file(run.run_dir / "eval", f"shifted_{Path(chosen).stem}", ev.shift_episodes)
+        name = f"shifted_{Path(chosen).stem}"
+        cache = cache_file(run.run_dir / "eval", name, episodes_digest(ev.shift_episodes))
         out["shifted"].append(ev.on(ev.shift_episodes, row.model, run.config, chosen, cache))
         meta.append({"run_dir": str(run.run_dir), "model_file": chosen, **info})
     return out, meta
