@@ -75,7 +75,7 @@ def test_runs_train_side_by_side_with_the_results_of_one_after_another(workspace
 
 def test_a_stopped_or_killed_grid_resumes_where_it_stopped(workspace, capsys):  # noqa: F811
     root, path = workspace
-    budget = "train.episodes=96"
+    budget = "train.episodes=480"  # long enough that no run ends between its first checkpoint and the signal
     command = _command(workspace, "killed", "--jobs", "2", "--set", budget)
     overrides = ["models=[a3c]", "focus=a3c", f"runs_dir={root / 'killed'}", budget]
     runs = experiment_runs(load_experiment("table1", "smoke", path, overrides, seeds=2))
