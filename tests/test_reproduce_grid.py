@@ -82,7 +82,10 @@ def test_a_stopped_or_killed_grid_resumes_where_it_stopped(workspace, capsys):  
 
     def start() -> subprocess.Popen:
         argv = [sys.executable, "-m", "mapless", *command]
-        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # Ctrl-C as a terminal delivers it: a child inherits an ignored SIGINT, and Python then
+        # keeps ignoring it, so a test run that left it ignored would make the grid deaf to it.
+        reset = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=reset)
 
     def checkpointed(run) -> int:
         file = run.run_dir / ckpt.CHECKPOINT_FILE
