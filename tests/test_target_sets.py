@@ -24,7 +24,7 @@ from mapless.experiments import load_experiment
 from mapless.experiments.evaluator import Evaluator
 from mapless.knowledge import parent_lists, parent_weights
 from mapless.knowledge.glove import glove_vector
-from mapless.knowledge.graph import hierarchical_adjacency
+from mapless.knowledge.graph import hierarchical_adjacency, normalize_adjacency
 from mapless.offline.episodes import read_episode_file
 from mapless.scenes.catalogue import ROOM_TYPES, scene_names
 from mapless.scenes.categories import (
@@ -77,17 +77,43 @@ def test_hoz22_targets_occur_in_the_training_floor_plans_of_their_room_type():
         assert set(targets) <= present, room
 
 
-def test_hoz22_targets_have_parent_lists_but_leave_the_graph_unchanged():
+def test_hoz22_targets_add_their_parent_edges_to_hoz22_runs_graphs_only():
     for name in CATEGORY_SETS:
         lists = parent_lists(name)
         for room, targets in HOZ22_TARGETS.items():
             assert set(targets) <= set(lists[room]), (name, room)
     # The parent reward pays for a hoz22-only target (Pan's parents in kitchens include StoveBurner) ...
     names = category_set().names
-    assert parent_weights("kitchen", "Pan")[names.index("StoveBurner")] > 0
-    # ... but its target<->parent edges do not enter the shared graph (knowledge/graph.py,
-    # GRAPH_TARGET_SETS): 911 non-zeros as before hoz22 (docs/model.md).
-    assert int((hierarchical_adjacency() > 0).sum()) == 911
+    pan, burner = names.index("Pan"), names.index("StoveBurner")
+    assert parent_weights("kitchen", "Pan")[burner] > 0
+    # ... and a hoz22 run's graph links them, while every other run keeps the graph it always had:
+    # 911 non-zeros (docs/model.md), Pan and StoveBurner unlinked by VG's caption counts.
+    shared = hierarchical_adjacency() > 0
+    assert int(shared.sum()) == 911 and not shared[pan, burner]
+    assert (hierarchical_adjacency(target_set="mjolnir22") == hierarchical_adjacency()).all()
+    hoz = hierarchical_adjacency(target_set="hoz22") > 0
+    assert hoz[pan, burner] and hoz[burner, pan] and int(hoz.sum()) == 947
+    # Exactly the edges of the 21 (room type, target) pairs that hoz22 adds to mjolnir22's and SAVN's
+    # (Pan in kitchens, Book in living rooms, ...) are new.
+    earlier = {(r, t) for s in ("mjolnir22", "savn") for r, ts in TARGET_SETS[s].items() for t in ts}
+    new_pairs = {(r, t) for r, ts in HOZ22_TARGETS.items() for t in ts} - earlier
+    assert len(new_pairs) == 21 and ("kitchen", "Pan") in new_pairs
+    expected = shared.copy()
+    for room, target in new_pairs:
+        for entry in parent_lists()[room][target]:
+            i, j = names.index(target), names.index(entry["parent"])
+            expected[i, j] = expected[j, i] = True
+    assert (hoz == expected).all()
+
+
+def test_a_training_run_on_hoz22_starts_from_the_hoz22_graph():
+    from mapless.train.builders import new_model
+
+    hoz = new_model(tiny_config("cvmeta", "env.target_set=hoz22")).A.detach().numpy()
+    assert np.array_equal(hoz, normalize_adjacency(hierarchical_adjacency(target_set="hoz22")))
+    default = new_model(tiny_config("cvmeta")).A.detach().numpy()
+    assert np.array_equal(default, normalize_adjacency(hierarchical_adjacency()))
+    assert not np.array_equal(default, hoz)
 
 
 # ---------------------------------------------------------------- the sets an experiment reads

@@ -73,12 +73,19 @@ class Knowledge:
         return self.graphs[name]
 
 
-def load_knowledge(set_name: str = "mjolnir101", hierarchy_rooms: tuple[str, ...] = ROOM_TYPES) -> Knowledge:
-    """Packaged GloVe and graphs of a category set; ``hierarchy_rooms`` selects whose parent edges enter."""
+def load_knowledge(
+    set_name: str = "mjolnir101",
+    hierarchy_rooms: tuple[str, ...] = ROOM_TYPES,
+    target_set: str | None = None,
+) -> Knowledge:
+    """Packaged GloVe and graphs of a category set; ``hierarchy_rooms`` selects whose parent edges
+    enter, ``target_set`` (a run's) adds its targets' parent edges to the shared ones (graph.py)."""
     return Knowledge(
         category_names=category_set(set_name).names,
         glove=category_glove(set_name),
-        graphs={name: category_graph(name, set_name, tuple(hierarchy_rooms)) for name in GRAPHS},
+        graphs={
+            name: category_graph(name, set_name, tuple(hierarchy_rooms), target_set) for name in GRAPHS
+        },
     )
 
 

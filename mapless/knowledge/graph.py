@@ -14,7 +14,8 @@
   3. add a self-loop on every node (so the 22 nodes without VG edges still keep their own features);
   4. add symmetric target<->parent edges for every (room type, target, parent) of
      :func:`mapless.knowledge.parents.parent_lists` whose target belongs to :data:`GRAPH_TARGET_SETS`
-     (optionally only for some room types, the paper's "no relationships" ablation).
+     or to the run's own target set (optionally only for some room types, the paper's "no
+     relationships" ablation).
 
 :func:`normalize_adjacency` is the references' ``D^-1/2 A^T D^-1/2`` (row sums, inf -> 0).
 """
@@ -37,13 +38,13 @@ VG_FILES = {
 }
 VG_MIN_COUNT = 5
 GRAPHS = ("vg", "hierarchical")
-#: Target sets whose parent lists add the hierarchical graph's target<->parent edges. The graph is
-#: one per category set, shared by every run whatever its ``env.target_set`` (the models build it
-#: from the category set alone), and a run folder's name does not cover it: a target set added later
-#: (``hoz22``) gets parent lists for its reward but no edges, so that the graph of every run trained
-#: before stays the graph it was trained with. 14 of hoz22's 22 classes are mjolnir22 or SAVN
-#: targets and have their edges; the other 8 (CellPhone, Chair, FloorLamp, Kettle, Pan, Plate, Pot,
-#: StoveBurner) are graph nodes with their purified VG edges only (docs/model.md, "Knowledge").
+#: Target sets whose parent lists add the hierarchical graph's target<->parent edges in every run,
+#: whatever its ``env.target_set``: the graph every run was trained with before ``hoz22`` came. A run
+#: on another target set adds its own set's edges too (``target_set`` below; the trainer passes the
+#: run's): hoz22 adds 21 (room type, target) pairs to mjolnir22's and SAVN's (Pan, Kettle, Plate in
+#: kitchens, Book in living rooms, ...), 36 more non-zeros, in hoz22 runs only. The graph is a
+#: trained parameter (the references'), so evaluation reads it from the
+#: checkpoint whatever graph a fresh model starts with.
 GRAPH_TARGET_SETS = ("mjolnir22", "savn")
 
 
@@ -90,8 +91,11 @@ def training_cooccurrence(set_name: str = "mjolnir101") -> np.ndarray:
 
 
 @functools.cache
-def hierarchical_adjacency(set_name: str = "mjolnir101", rooms: tuple[str, ...] = ROOM_TYPES) -> np.ndarray:
-    """``[C, C]`` float32 0/1: purified, self-looped VG graph plus target<->parent edges of ``rooms``.
+def hierarchical_adjacency(
+    set_name: str = "mjolnir101", rooms: tuple[str, ...] = ROOM_TYPES, target_set: str | None = None
+) -> np.ndarray:
+    """``[C, C]`` float32 0/1: purified, self-looped VG graph plus target<->parent edges of ``rooms``,
+    for the targets of :data:`GRAPH_TARGET_SETS` and of ``target_set`` (a run's ``env.target_set``).
 
     Leaving a room type out of ``rooms`` (the Table 3 ablation) removes only the edges its hierarchy
     alone adds: pairs the VG graph or another room type also links stay (docs/evaluation.md)."""
@@ -105,8 +109,9 @@ def hierarchical_adjacency(set_name: str = "mjolnir101", rooms: tuple[str, ...] 
     adjacency = (vg | vg.T) & training_cooccurrence(set_name)
     np.fill_diagonal(adjacency, True)
     lists = parent_lists(set_name)
+    target_sets = GRAPH_TARGET_SETS + ((target_set,) if target_set else ())
     for room in rooms:
-        graph_targets = {t for name in GRAPH_TARGET_SETS for t in targets(name)[room]}
+        graph_targets = {t for name in target_sets for t in targets(name)[room]}
         for target, entries in lists[room].items():
             if target not in graph_targets:
                 continue
@@ -120,13 +125,16 @@ def hierarchical_adjacency(set_name: str = "mjolnir101", rooms: tuple[str, ...] 
 
 
 def category_graph(
-    name: str, set_name: str = "mjolnir101", rooms: tuple[str, ...] = ROOM_TYPES
+    name: str,
+    set_name: str = "mjolnir101",
+    rooms: tuple[str, ...] = ROOM_TYPES,
+    target_set: str | None = None,
 ) -> np.ndarray:
-    """A graph of :data:`GRAPHS` by name (``rooms`` only affects ``hierarchical``)."""
+    """A graph of :data:`GRAPHS` by name (``rooms`` and ``target_set`` only affect ``hierarchical``)."""
     if name == "vg":
         return vg_adjacency(set_name)
     if name == "hierarchical":
-        return hierarchical_adjacency(set_name, tuple(rooms))
+        return hierarchical_adjacency(set_name, tuple(rooms), target_set)
     raise UnknownNameError("graph", name, GRAPHS)
 
 

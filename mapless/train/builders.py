@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from mapless.episodes.sampler import TrainingSampler
+from mapless.knowledge import load_knowledge
 from mapless.models import NavModel, build_model
 from mapless.offline import offline_library
 from mapless.sim.library import SceneLibrary
@@ -77,4 +78,7 @@ def training_env(config: TrainConfig, library: SceneLibrary, batch_size: int) ->
 
 
 def new_model(config: TrainConfig, device: torch.device | str = "cpu") -> NavModel:
-    return build_model(config.model).to(device).train()
+    """The run's model, its hierarchical graph with the parent edges of the run's target set."""
+    model = config.model
+    knowledge = load_knowledge(model.category_set, model.hierarchy_rooms, config.env.target_set)
+    return build_model(model, knowledge).to(device).train()
