@@ -83,9 +83,7 @@ def load_knowledge(
     return Knowledge(
         category_names=category_set(set_name).names,
         glove=category_glove(set_name),
-        graphs={
-            name: category_graph(name, set_name, tuple(hierarchy_rooms), target_set) for name in GRAPHS
-        },
+        graphs={name: category_graph(name, set_name, tuple(hierarchy_rooms), target_set) for name in GRAPHS},
     )
 
 
