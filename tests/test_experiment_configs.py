@@ -12,8 +12,8 @@ the budget's env.scenes, replaced in each of its runs by the room type's: same r
 env.reward: block, by the same key mapping (the ablation rows' env.parent_reward and
 env.parent_reward_rule moved under env.reward: by from_legacy_layout applied to each row's train:,
 nothing else changed), and the composition rules; then the long budget's ablation file and the
-ablation's rows j (model.context_distance) and k (with model.semantic_map), added without moving
-any run folder."""
+ablation's rows j (model.context_distance), k (with model.semantic_map) and l (k without
+meta-learning), added without moving any run folder."""
 
 from __future__ import annotations
 
