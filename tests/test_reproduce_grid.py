@@ -82,8 +82,9 @@ def test_a_stopped_or_killed_grid_resumes_where_it_stopped(workspace, capsys):  
 
     def start() -> subprocess.Popen:
         argv = [sys.executable, "-m", "mapless", *command]
-        # Ctrl-C as a terminal delivers it: a child inherits an ignored SIGINT, and Python then
-        # keeps ignoring it, so a test run that left it ignored would make the grid deaf to it.
+        # Ctrl-C as a terminal delivers it. A non-interactive shell starts a background job (`cmd &`,
+        # as CI harnesses do) with SIGINT ignored; pytest, and every child, inherits that, and Python
+        # then installs no KeyboardInterrupt handler: the grid would be deaf to Ctrl-C.
         reset = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
         return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=reset)
 
