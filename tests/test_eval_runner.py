@@ -59,6 +59,7 @@ def test_oracle_scores_perfectly(episodes):
     # It first sees the target where it stops: its last move (the start, for a one-step episode).
     assert [r.first_seen for r in run.results] == [r.length - 1 for r in run.results]
     assert all(r.ended_in_frame for r in run.results)
+    assert all(r.stops_passed == 0 for r in run.results)  # it stops where it first could
 
 
 def test_results_independent_of_workers_and_batch_neighbours(episodes):
@@ -99,6 +100,12 @@ def test_random_policy_samples_uniformly_and_respects_limits(episodes):
     assert all(0 <= r.first_seen <= r.length - 1 for r in run.results if r.success)
     assert all(-1 <= r.first_seen <= r.length for r in run.results)
     assert sum(r.first_seen >= 0 for r in run.results) > sum(r.success for r in run.results)
+    # A random walk passes stops up: none before its first sight, and every failure that saw its
+    # target before its last action passed at least the stop where it saw it.
+    assert all(r.stops_passed == 0 for r in run.results if r.first_seen == -1)
+    failed_after_a_sight = [r for r in run.results if 0 <= r.first_seen < r.length and not r.success]
+    assert failed_after_a_sight and all(r.stops_passed >= 1 for r in failed_after_a_sight)
+    assert sum(r.stops_passed for r in run.results) > 0
     # Where it ended, a target instance is in the frame exactly when the scene's view list says so.
     lib, by_index = fixture_library(), episodes * 4
     for r in run.results:

@@ -186,10 +186,33 @@ def test_sightings_are_the_first_step_that_sees_the_target_and_the_last_pose_in_
     sees[[4, 6]] = True
     in_frame = sees.copy()
     in_frame[[2, 5]] = True  # in the frame, out of the rule's reach
-    assert sightings(sees, in_frame, 0, [1, 2, 4, 5, 6]) == (3, True)  # path 0, 1, 2, 4: step 3
-    assert sightings(sees, in_frame, 6, [5, 4, 7]) == (0, False)  # the start sees it; ends out of frame
-    assert sightings(sees, in_frame, 0, [1, 1, 2]) == (-1, True)  # never saw it; ends with it too far
-    assert sightings(sees, in_frame, 0, []) == (-1, False)  # no step taken
+    # Path 0, 1, 2, 4, 5, 6: first seen at step 3; actions are taken at 0, 1, 2, 4, 5: one on 4.
+    assert sightings(sees, in_frame, 0, [1, 2, 4, 5, 6]) == (3, True, 1)
+    # The start sees it, the agent walks away (one action at 6, one at 4): two stops passed.
+    assert sightings(sees, in_frame, 6, [5, 4, 7]) == (0, False, 2)
+    assert sightings(sees, in_frame, 0, [1, 1, 2]) == (-1, True, 0)  # never saw it; ends with it too far
+    assert sightings(sees, in_frame, 0, []) == (-1, False, 0)  # no step taken
+
+
+def test_stops_passed_count_the_actions_on_a_pose_where_done_would_have_succeeded():
+    sees = np.zeros(8, dtype=bool)
+    sees[[4, 5]] = True
+    frame = sees.copy()
+    # Path 0, 4, 5, 5: actions at 0 (move), 4 (move), 5 (a failed move), 5 (Done, a success): the
+    # moves at 4 and 5 were stops passed up, the successful Done is not.
+    assert sightings(sees, frame, 0, [4, 5, 5, 5], success=True).stops_passed == 2
+    # The same path ended by the step limit instead: the last action at 5 was no Done, so 3.
+    assert sightings(sees, frame, 0, [4, 5, 5, 5], success=False).stops_passed == 3
+    # A success at its first sight passes none.
+    assert sightings(sees, frame, 0, [4, 4], success=True).stops_passed == 0
+    # Aggregated per episode over recorded episodes only.
+    results = [
+        dataclasses.replace(ep(0, True, 4, 4), first_seen=1, ended_in_frame=True, stops_passed=2),
+        dataclasses.replace(ep(1, False, 4, 4), first_seen=1, ended_in_frame=True, stops_passed=3),
+        ep(2, False, 4, 4),
+    ]
+    assert aggregate(results)["stops_passed"] == pytest.approx(2.5)
+    assert math.isnan(aggregate(results[2:])["stops_passed"])
 
 
 def test_seen_and_short_done_rates_count_recorded_episodes_only():
@@ -220,9 +243,9 @@ def test_seen_and_short_done_rates_count_recorded_episodes_only():
     # Stored and read back whole, and an old record without the fields reads as unrecorded.
     assert EpisodeResult.from_dict(results[1].to_dict()) == results[1]
     old = results[1].to_dict()
-    del old["first_seen"], old["ended_in_frame"]
+    del old["first_seen"], old["ended_in_frame"], old["stops_passed"]
     assert EpisodeResult.from_dict(old) == dataclasses.replace(
-        results[1], first_seen=None, ended_in_frame=None
+        results[1], first_seen=None, ended_in_frame=None, stops_passed=None
     )
 
 
@@ -356,6 +379,7 @@ def test_metric_declarations_are_checked():
         "seen_rate",
         "short_done_rate",
         "approach_steps",
+        "stops_passed",
     )
     assert [METRICS[k].scale for k in ("success", "ep_length")] == [100.0, 1.0]
 

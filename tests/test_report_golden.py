@@ -41,7 +41,7 @@ from mapless.experiments.records import (
 DATA = Path(__file__).parent / "data"
 COMPARED = (
     *("success", "spl", "l5_success", "l5_spl"),
-    *("false_done_rate", "seen_rate", "short_done_rate", "approach_steps"),
+    *("false_done_rate", "seen_rate", "short_done_rate", "approach_steps", "stops_passed"),
 )
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -53,6 +53,9 @@ class EpisodeResult:
     #: A target instance was in the frame, at any distance, where the episode ended (None: not
     #: recorded). With a failed ``Done``: the agent stopped short of the success rule's reach.
     ended_in_frame: bool | None = None
+    #: Steps the agent took where a ``Done`` would have succeeded (a target instance visible under
+    #: the success rule) and did something else: stops it passed up (None: not recorded).
+    stops_passed: int | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -86,16 +89,33 @@ def same_actions(a: Sequence[EpisodeResult], b: Sequence[EpisodeResult]) -> int:
     return sum(x.actions == y.actions for x, y in zip(a, b, strict=True))
 
 
+class Sighting(NamedTuple):
+    """What a trajectory shows of its target (the :class:`EpisodeResult` fields of the same names)."""
+
+    first_seen: int
+    ended_in_frame: bool
+    stops_passed: int
+
+
 def sightings(
-    goal_mask: np.ndarray, frame_mask: np.ndarray, start_pose: int, poses: Sequence[int]
-) -> tuple[int, bool]:
-    """:attr:`EpisodeResult.first_seen` and :attr:`~EpisodeResult.ended_in_frame` of a trajectory:
-    the first step index at which the agent stood on a pose of ``goal_mask`` (bool ``[P]``: a target
-    instance visible), 0 being the start, -1 if it never did; and whether its last pose is one of
-    ``frame_mask`` (a target instance in the frame at any distance)."""
+    goal_mask: np.ndarray,
+    frame_mask: np.ndarray,
+    start_pose: int,
+    poses: Sequence[int],
+    success: bool = False,
+) -> Sighting:
+    """A trajectory's :class:`Sighting`: the first step index at which the agent stood on a pose of
+    ``goal_mask`` (bool ``[P]``: a target instance visible), 0 being the start, -1 if it never did;
+    whether its last pose is one of ``frame_mask`` (a target instance in the frame at any distance);
+    and the actions it took on a ``goal_mask`` pose other than a successful ``Done`` (action ``i``
+    is taken at the pose before it: the start, then ``poses[i - 1]``)."""
     path = np.concatenate([[start_pose], np.asarray(poses, dtype=np.int64)]).astype(np.int64)
-    hits = np.flatnonzero(goal_mask[path])
-    return (int(hits[0]) if len(hits) else -1), bool(frame_mask[path[-1]])
+    on_goal = goal_mask[path]
+    hits = np.flatnonzero(on_goal)
+    acted_on_goal = int(on_goal[: len(poses)].sum())
+    return Sighting(
+        int(hits[0]) if len(hits) else -1, bool(frame_mask[path[-1]]), acted_on_goal - int(success)
+    )
 
 
 def exploration_counts(poses: Sequence[int]) -> np.ndarray:
@@ -138,8 +158,9 @@ def exploration_curve(
 def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
     """Per-episode arrays: success, spl, l5 membership, length, done, false done (``Done`` with no
     target instance visible), failed-action share, exploration, seen, approach (a success's actions
-    from its first sight of the target on, Done included), short done (a false done with a target
-    instance in the frame); the last three NaN where not recorded or, for approach, not a success."""
+    from its first sight of the target on, Done included), stops passed, short done (a false done
+    with a target instance in the frame); the last four NaN where not recorded or, for approach, not
+    a success."""
     n = len(results)
     values = {
         "success": np.fromiter((r.success for r in results), dtype=np.float64, count=n),
@@ -171,6 +192,11 @@ def episode_values(results: Sequence[EpisodeResult]) -> dict[str, np.ndarray]:
                 else np.nan
                 for r in results
             ),
+            dtype=np.float64,
+            count=n,
+        ),
+        "stops_passed": np.fromiter(
+            (np.nan if r.stops_passed is None else float(r.stops_passed) for r in results),
             dtype=np.float64,
             count=n,
         ),
@@ -275,6 +301,9 @@ register(Metric("short_done_rate", "short Done", "short_done", table="details", 
 #: How a success ends: the actions from its first sight of the target to its Done. With the steps
 #: before it (length − approach), it splits a success's path, hence SPL, into search and approach.
 register(Metric("approach_steps", "approach", "approach", percent=False, table="details", compared=True))
+#: Where a success's approach goes, and what a failure missed: the steps on which ``Done`` would
+#: have succeeded and the agent did something else (per episode, over every episode).
+register(Metric("stops_passed", "passed", "stops_passed", percent=False, table="details", compared=True))
 register(Metric("reward", "reward", "reward", percent=False, interval=False))
 
 

@@ -181,7 +181,7 @@ class Sightings:
         self.library = library
         self._masks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
-    def __call__(self, episode: Episode, start_pose: int, poses: Sequence[int]) -> dict:
+    def __call__(self, episode: Episode, start_pose: int, poses: Sequence[int], success: bool) -> dict:
         key = (episode.scene, episode.target, episode.target_ids)
         if key not in self._masks:
             data = self.library[episode.scene]
@@ -190,24 +190,28 @@ class Sightings:
                 data.goal_mask_for_instances(instances),
                 data.in_frame_mask_for_instances(instances),
             )
-        first_seen, ended_in_frame = sightings(*self._masks[key], start_pose, poses)
-        return {"first_seen": first_seen, "ended_in_frame": ended_in_frame}
+        return sightings(*self._masks[key], start_pose, poses, success)._asdict()
+
+
+def lacks_sightings(result: EpisodeResult) -> bool:
+    """Whether a (cached) result predates one of the sighting fields."""
+    return result.first_seen is None or result.ended_in_frame is None or result.stops_passed is None
 
 
 def with_sightings(
     results: Sequence[EpisodeResult], episodes: Sequence[Episode], library: SceneLibrary
 ) -> list[EpisodeResult]:
     """``results`` (of ``episodes``, by index) with their sightings (:attr:`EpisodeResult.first_seen`,
-    :attr:`~EpisodeResult.ended_in_frame`) filled in from their recorded poses where missing (results
-    cached before they were recorded)."""
+    :attr:`~EpisodeResult.ended_in_frame`, :attr:`~EpisodeResult.stops_passed`) filled in from their
+    recorded poses where missing (results cached before they were recorded)."""
     sight = Sightings(library)
     filled = []
     for r in results:
-        if r.first_seen is None or r.ended_in_frame is None:
+        if lacks_sightings(r):
             episode = episodes[r.index]
             if episode.episode_id != r.episode_id:
                 raise MaplessError(f"result {r.index} is of episode {r.episode_id}, not {episode.episode_id}")
-            r = dataclasses.replace(r, **sight(episode, r.start_pose, r.poses))
+            r = dataclasses.replace(r, **sight(episode, r.start_pose, r.poses, r.success))
         filled.append(r)
     return filled
 
@@ -297,7 +301,7 @@ class _EvaluationRecorder:
                     start_pose=int(self.start_pose[slot]),
                     poses=tuple(poses.tolist()),
                     actions=tuple(self.actions[slot, :length].tolist()),
-                    **self.sightings(episode, int(self.start_pose[slot]), poses),
+                    **self.sightings(episode, int(self.start_pose[slot]), poses, bool(step.success[slot])),
                 )
             )
             self.slot_item[slot] = -1

@@ -24,7 +24,15 @@ from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, aggregate, main_metrics
 from mapless.evaluate.report import read_json, write_json
-from mapless.evaluate.runner import AgentSpec, EvalRun, EvalSettings, LibrarySpec, evaluate, with_sightings
+from mapless.evaluate.runner import (
+    AgentSpec,
+    EvalRun,
+    EvalSettings,
+    LibrarySpec,
+    evaluate,
+    lacks_sightings,
+    with_sightings,
+)
 from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
@@ -184,7 +192,7 @@ def cached_evaluate(
             stored = {}
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]
-            if any(r.first_seen is None or r.ended_in_frame is None for r in results):  # cached before
+            if any(lacks_sightings(r) for r in results):  # cached before they were recorded
                 results = with_sightings(results, episodes, _scenes(library))
                 _store(cache, key, stored["seconds"], stored["steps"], results)
             return EvalRun(results, stored["seconds"], stored["steps"])
