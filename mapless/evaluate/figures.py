@@ -123,7 +123,8 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
         fig.legend(handles, labels, loc="lower center", ncol=2, fontsize="small", frameon=False)
         fig.tight_layout(rect=(0, 0.3 * legend_rows / (4 + 0.3 * legend_rows) + 0.02, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    # A long row label in the two-column legend is wider than half the figure: the tight box keeps it.
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return True
 
