@@ -373,6 +373,34 @@ def test_the_learned_loss_takes_no_step_while_the_expert_term_is_on(
     assert grads["lstm.weight_ih"] is not None and grads["lstm.weight_ih"].abs().sum() > 0
 
 
+def test_a_frozen_learned_loss_takes_no_step_and_the_inner_steps_still_adapt() -> None:
+    """``meta.train_learned_loss: false`` (ablation row m): φ gets no gradient, θ_0 exactly the one
+    it gets with φ trained (the same forward: φ starts where the seed puts it), and that gradient is
+    not the one of an episode without inner steps: the fast weights still move along φ's gradient."""
+    grads = {}
+    for name, overrides in {
+        "trained": (),
+        "frozen": ("meta.train_learned_loss=false",),
+        "no inner step": ("model.max_inner_updates=0",),
+    }.items():
+        trainer, segment = _adaptive_trainer(*overrides)
+        torch.manual_seed(0)
+        grads[name] = _gradients(trainer, segment, torch.randn_like(segment.values))
+    phi = set(trainer.model.learned_loss_parameter_names())
+    assert all(grads["frozen"][n] is None for n in phi)
+    assert any(grads["trained"][n] is not None and grads["trained"][n].abs().sum() > 0 for n in phi)
+    theta = [n for n, g in grads["trained"].items() if n not in phi and g is not None]
+    assert "lstm.weight_ih" in theta
+    for n in theta:
+        torch.testing.assert_close(grads["frozen"][n], grads["trained"][n])
+    assert not torch.allclose(grads["frozen"]["lstm.weight_ih"], grads["no inner step"]["lstm.weight_ih"])
+
+
+def test_a_frozen_learned_loss_is_refused_outside_ppo() -> None:
+    with pytest.raises(ConfigError, match="frozen learned loss"):
+        tiny_config("cvmeta", "algo=a3c", "meta.train_learned_loss=false")
+
+
 def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_policy() -> None:
     """``model.adapt: none``: no inner loop, segments of ``ppo.steps`` like a3c's, the learned loss
     never used (no gradient)."""

@@ -54,6 +54,7 @@ _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
     ("meta.navigation_loss", _meta_learns_under_ppo),
     ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
     ("env.parent_reward_rule", lambda c: c.parent_reward),
+    ("meta.train_learned_loss", lambda c: not c.meta.train_learned_loss),
 )
 
 

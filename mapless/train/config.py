@@ -197,6 +197,10 @@ class MetaConfig:
         imitation term (``ppo.imitation_coef``) is on. Off (default): φ receives no gradient from an
         update whose loss holds the expert's cross-entropy, a signal that does not exist at test
         time, so φ only ever learns to stand in for the navigation loss.
+    train_learned_loss: whether φ is meta-trained at all (PPO only). Off: φ keeps its
+        initialisation, so the inner steps still move the fast weights, but along a gradient that
+        nothing has taught (an ablation, issue 42: does θ_0 unlearn the stop through the inner
+        steps themselves or through what φ learns?).
     The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
     ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
     """
@@ -204,6 +208,7 @@ class MetaConfig:
     first_order: bool = False
     navigation_loss: str = "episode"
     learned_loss_from_imitation: bool = False
+    train_learned_loss: bool = True
 
     def __post_init__(self) -> None:
         _require(
@@ -450,6 +455,11 @@ class TrainConfig:
                 f"{self.algo}: block; remove the {other}: settings ({', '.join(changed)}) "
                 f"or set algo: {other}"
             )
+        _require(
+            self.algo == "ppo" or self.meta.train_learned_loss,
+            "meta.train_learned_loss",
+            "a frozen learned loss is implemented for the PPO trainer only; set algo: ppo",
+        )
         _require(
             self.algo == "a3c" or self.precision == "fp32",
             "precision",

@@ -25,7 +25,8 @@ With ``ppo.imitation_coef`` > 0 the loss also holds the cross-entropy to the sim
 shortest-path expert on the agent's own steps (an imitation warm start, annealed over
 ``ppo.imitation_frames``; off in the paper's protocol). While it is on, the learned loss φ takes no
 step (``meta.learned_loss_from_imitation``): φ is meta-trained to stand in for the navigation loss,
-never for the expert's cross-entropy, which no test-time agent has.
+never for the expert's cross-entropy, which no test-time agent has. ``meta.train_learned_loss:
+false`` freezes φ at its initialisation in every update (an ablation).
 
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
 that acted with the same function under new parameters. The seeds, model, environment, random
@@ -208,9 +209,11 @@ class PPOTrainer(SynchronousTrainer):
             total.backward()
         else:
             self.inner.backward(state, total)
-            if imitation > 0 and not self.config.meta.learned_loss_from_imitation:
+            meta = self.config.meta
+            if not meta.train_learned_loss or (imitation > 0 and not meta.learned_loss_from_imitation):
                 # φ must learn to stand in for the navigation loss, not for the expert's
                 # cross-entropy, which does not exist at test time: no φ step in this update.
+                # (A frozen φ, the ablation, takes none in any update.)
                 for param in self._learned_loss_params:
                     param.grad = None
         return PPOLoss(*(t.detach() for t in loss))
