@@ -534,9 +534,9 @@ def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
     assert medium.train["max_seconds"] == 3600 and small.train["max_seconds"] == 900
     # Two seeds of the focus model and of rows d, f, j, k and l, one of the six rows with `seeds: 1`;
     # row a only evaluates the focus model's runs.
-    assert planned_runs(small) == {"cvmeta": 2 + 2 + 2 + 2 + 2 + 2 + 7}
+    assert planned_runs(small) == {"cvmeta": 2 + 2 + 2 + 2 + 2 + 2 + 2 + 2 + 7}
     assert planned_runs(load_experiment("ablation", "small", seeds=3)) == {
-        "cvmeta": 3 + 3 + 3 + 3 + 3 + 3 + 7
+        "cvmeta": 3 + 3 + 3 + 3 + 3 + 3 + 3 + 3 + 7
     }
 
 

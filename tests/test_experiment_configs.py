@@ -13,8 +13,8 @@ env.reward: block, by the same key mapping (the ablation rows' env.parent_reward
 env.parent_reward_rule moved under env.reward: by from_legacy_layout applied to each row's train:,
 nothing else changed), and the composition rules; then the long budget's ablation file and the
 ablation's rows j (model.context_distance), k (with model.semantic_map) and l (k without
-meta-learning), then m (k with φ frozen, meta.train_learned_loss), added without moving any run
-folder."""
+meta-learning), then m (k with φ frozen, meta.train_learned_loss), n and o (cvmeta and k with no inner
+step), added without moving any run folder."""
 
 from __future__ import annotations
 
