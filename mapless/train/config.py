@@ -199,8 +199,7 @@ class MetaConfig:
         time, so φ only ever learns to stand in for the navigation loss.
     train_learned_loss: whether φ is meta-trained at all (PPO only). Off: φ keeps its
         initialisation, so the inner steps still move the fast weights, but along a gradient that
-        nothing has taught (an ablation, issue 42: does θ_0 unlearn the stop through the inner
-        steps themselves or through what φ learns?).
+        nothing has taught (an ablation, issue 42: what meta-training φ adds to the inner steps).
     The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
     ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
     """
