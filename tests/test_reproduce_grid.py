@@ -18,8 +18,8 @@ from test_eval_reproduce import workspace  # noqa: F401 - the fixture: three bui
 
 from mapless import checkpoint as ckpt
 from mapless.cli import main
-from mapless.experiments import SlurmLauncher, experiment_runs, load_experiment, reproduce
-from mapless.experiments.launch import default_jobs, in_use, read_progress
+from mapless.experiments import SlurmLauncher, experiment_runs, launch, load_experiment, reproduce
+from mapless.experiments.launch import LocalLauncher, default_jobs, in_use, read_progress
 from mapless.provenance import cpu_cores
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
@@ -182,3 +182,20 @@ def test_the_default_keeps_every_core_busy_with_one_run_per_core(workspace, tmp_
     first.mkdir(parents=True)
     (first / ckpt.FINAL_MODEL_FILE).touch()  # a finished run needs no process
     assert default_jobs(runs, cores=16) == 3
+
+
+def test_an_explicit_jobs_count_gives_a_lone_run_its_share_of_the_cores(workspace, tmp_path, monkeypatch):  # noqa: F811
+    """Two ``reproduce --jobs 2`` lanes side by side, each down to its last run: that run trains in
+    its command's process, and must keep to half the cores, not take both (each lane then ran ~8x
+    slower, 2026-12-06). Without ``--jobs``, or with 1, it keeps the config's count (0: every core)."""
+    _, path = workspace
+    runs = experiment_runs(load_experiment("table1", "smoke", path, ["models=[a3c]", f"runs_dir={tmp_path}"]))
+    assert len(runs) == 1 and runs[0].config.threads == 0
+    trained = []
+    monkeypatch.setattr(
+        launch, "train_run", lambda config, run_dir, log: trained.append((config.threads, run_dir)) or 1.0
+    )
+    monkeypatch.setattr(launch, "cpu_cores", lambda: 4)
+    for jobs in (2, 4, None, 1):
+        LocalLauncher(jobs).train(runs, lambda message: None)
+    assert trained == [(2, runs[0].run_dir), (1, runs[0].run_dir), (0, runs[0].run_dir), (0, runs[0].run_dir)]

@@ -118,7 +118,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--jobs",
         type=positive_int,
         help="runs trained side by side, each in a process with its share of the cores (default: one "
-        "per core, or per train.threads cores; 1: in this process, one after another)",
+        "per core, or per train.threads cores; 1: in this process, one after another); a last run "
+        "left alone keeps its share of N, so two commands can run side by side as lanes",
     )
     rep.add_argument(
         "--launcher",

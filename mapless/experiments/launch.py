@@ -96,7 +96,9 @@ def default_jobs(runs: Sequence[PlannedRun], cores: int | None = None) -> int:
 class LocalLauncher:
     """Runs on this machine: ``jobs`` at a time in processes of their own (None:
     :func:`default_jobs`), each with its share of the cores; one job trains in this process, as
-    ``mapless reproduce`` always did."""
+    ``mapless reproduce`` always did. A run left to train alone under an explicit ``jobs`` > 1 still
+    gets only its share (``cores // jobs`` threads): two such commands side by side, the lanes of
+    a long experiment, would otherwise each take every core and slow each other several-fold."""
 
     jobs: int | None = None
 
@@ -105,7 +107,8 @@ class LocalLauncher:
         todo = [run for run in runs if not run.finished]
         jobs = min(self.jobs or default_jobs(runs), len(todo))
         if jobs <= 1:
-            train_in_turn(runs, log)
+            share = max(1, cpu_cores() // self.jobs) if self.jobs and self.jobs > 1 else 0
+            train_in_turn(runs, log, threads=share)
             return True
         for run in runs:
             if run.finished:
@@ -114,12 +117,15 @@ class LocalLauncher:
         return True
 
 
-def train_in_turn(runs: Sequence[PlannedRun], log: Log) -> None:
-    """Each run in this process, one after another, with the time left logged as they go."""
+def train_in_turn(runs: Sequence[PlannedRun], log: Log, threads: int = 0) -> None:
+    """Each run in this process, one after another, with the time left logged as they go;
+    ``threads`` > 0: that many torch threads for the runs whose config names no count (the folder
+    stays the planned one, as :meth:`PlannedRun.with_threads` keeps it)."""
     tally = RunTally(dict(Counter(run.model for run in runs)), log)
     for run in runs:
+        config = dataclasses.replace(run.config, threads=run.config.threads or threads)
         tally.start(run.model, f"{run.variant}, seed {run.seed}")
-        tally.finish(train_run(run.config, run.run_dir, log))
+        tally.finish(train_run(config, run.run_dir, log))
 
 
 def prepare_scenes(runs: Sequence[PlannedRun]) -> None:
