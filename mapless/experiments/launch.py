@@ -61,11 +61,13 @@ class PlannedRun:
     def finished(self) -> bool:
         return (self.run_dir / ckpt.FINAL_MODEL_FILE).is_file()
 
-    def with_threads(self, threads: int) -> Any:
-        """The config a process of its own trains: ``threads`` unless the config names a count, and no
-        bar of its own (the grid shows one line per run). The folder stays the planned one: the
-        thread count does not change what the run learns."""
-        return dataclasses.replace(self.config, threads=self.config.threads or threads, progress=False)
+    def with_threads(self, threads: int, bar: bool = False) -> Any:
+        """The config a run trains with ``threads`` unless the config names a count; without ``bar``,
+        no bar of its own (a process of the grid, which shows one line per run). The folder stays the
+        planned one: the thread count does not change what the run learns."""
+        return dataclasses.replace(
+            self.config, threads=self.config.threads or threads, progress=self.config.progress and bar
+        )
 
 
 class Launcher(Protocol):
@@ -92,6 +94,11 @@ def default_jobs(runs: Sequence[PlannedRun], cores: int | None = None) -> int:
     return max(1, min(len(todo), (cores or cpu_cores()) // threads))
 
 
+def core_share(jobs: int) -> int:
+    """Torch threads for each of ``jobs`` runs side by side on this machine's cores."""
+    return max(1, cpu_cores() // jobs)
+
+
 @dataclass(frozen=True)
 class LocalLauncher:
     """Runs on this machine: ``jobs`` at a time in processes of their own (None:
@@ -107,8 +114,7 @@ class LocalLauncher:
         todo = [run for run in runs if not run.finished]
         jobs = min(self.jobs or default_jobs(runs), len(todo))
         if jobs <= 1:
-            share = max(1, cpu_cores() // self.jobs) if self.jobs and self.jobs > 1 else 0
-            train_in_turn(runs, log, threads=share)
+            train_in_turn(runs, log, threads=core_share(self.jobs) if self.jobs and self.jobs > 1 else 0)
             return True
         for run in runs:
             if run.finished:
@@ -119,11 +125,10 @@ class LocalLauncher:
 
 def train_in_turn(runs: Sequence[PlannedRun], log: Log, threads: int = 0) -> None:
     """Each run in this process, one after another, with the time left logged as they go;
-    ``threads`` > 0: that many torch threads for the runs whose config names no count (the folder
-    stays the planned one, as :meth:`PlannedRun.with_threads` keeps it)."""
+    ``threads`` > 0: that many torch threads for the runs whose config names no count."""
     tally = RunTally(dict(Counter(run.model for run in runs)), log)
     for run in runs:
-        config = dataclasses.replace(run.config, threads=run.config.threads or threads)
+        config = run.with_threads(threads, bar=True)
         tally.start(run.model, f"{run.variant}, seed {run.seed}")
         tally.finish(train_run(config, run.run_dir, log))
 
@@ -145,7 +150,7 @@ def train_side_by_side(runs: Sequence[PlannedRun], jobs: int, log: Log) -> None:
     """Train ``runs`` in ``jobs`` processes at a time (spawned: no state of this one is shared),
     each with ``cores // jobs`` torch threads, showing one line per run. Ctrl-C passes to every run
     in training, which checkpoints first; the same command resumes them."""
-    threads = max(1, cpu_cores() // jobs)
+    threads = core_share(jobs)
     prepare_scenes(runs)
     context = mp.get_context("spawn")
     messages = context.Queue()
