@@ -14,7 +14,8 @@ env.parent_reward_rule moved under env.reward: by from_legacy_layout applied to 
 nothing else changed), and the composition rules; then the long budget's ablation file and the
 ablation's rows j (model.context_distance), k (with model.semantic_map) and l (k without
 meta-learning), then m (k with φ frozen, meta.train_learned_loss), n and o (cvmeta and k with no inner
-step), added without moving any run folder."""
+step), p and q (l with whole episodes, ppo.whole_episodes, or two minibatches), added without moving
+any run folder."""
 
 from __future__ import annotations
 

@@ -415,6 +415,38 @@ def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_p
     assert grads["lstm.weight_ih"].abs().sum() > 0
 
 
+def test_whole_episodes_make_a_plain_policy_play_each_slots_episode_to_its_end() -> None:
+    """``ppo.whole_episodes`` for a non-adaptive model: an update collects one episode per slot,
+    each from step 0 to its end (not ``ppo.steps``), the slot idle and masked after it, the limit an
+    end; no inner loop acts, and the replay reproduces the acting policy on every step in the loss."""
+
+    def trainer_with(*extra: str) -> PPOTrainer:
+        config = tiny_config(
+            "a3c", "algo=ppo", "ppo.envs=6", "ppo.steps=3", "frames=100", "env.max_steps=9", *extra
+        )
+        trainer = PPOTrainer(config, None, fixture_library)
+        trainer.build()
+        return trainer
+
+    trainer = trainer_with("ppo.whole_episodes=true")
+    assert trainer.inner is None and not trainer.collector.adapting
+    segment = trainer.collector.collect(9, trainer.rng)
+    assert segment.starts[0].all() and not segment.starts[1:].any()
+    assert len(segment.finished["success"]) == 6 and (segment.next_value == 0).all()
+    lengths = segment.mask.sum(0).long().tolist()
+    assert max(lengths) == segment.mask.shape[0] and min(lengths) < max(lengths)
+    for slot, length in enumerate(lengths):
+        assert (segment.mask[:length, slot] == 1).all() and (segment.mask[length:, slot] == 0).all()
+        assert bool(segment.terminated[length - 1, slot]) and not segment.truncated[:, slot].any()
+    logits, values = trainer.model.replay(segment.obs, segment.prev_policy, segment.starts, segment.hidden)
+    log_prob = torch.log_softmax(logits, -1).gather(-1, segment.actions[..., None]).squeeze(-1)
+    mask = segment.mask > 0
+    assert torch.allclose(log_prob[mask], segment.log_prob[mask], atol=1e-5)
+    assert torch.allclose(values[mask], segment.values[mask], atol=1e-5)
+    assert trainer.update()["segment"].mask.shape[0] > 3  # the update plays to the episodes' end
+    assert trainer_with().update()["segment"].mask.shape[0] == 3  # off: ppo.steps-step segments
+
+
 def test_a_minibatch_whose_every_step_is_in_the_interaction_phase_gives_no_nan() -> None:
     """Episodes no longer than k under ``after_interaction``: nothing is in the loss, and advantage
     normalisation over no step must not turn the gradient into NaN."""

@@ -55,6 +55,7 @@ _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
     ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
     ("env.parent_reward_rule", lambda c: c.parent_reward),
     ("meta.train_learned_loss", lambda c: not c.meta.train_learned_loss),
+    ("ppo.whole_episodes", lambda c: c.ppo.whole_episodes and not _meta_learns_under_ppo(c)),
 )
 
 

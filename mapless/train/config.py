@@ -224,6 +224,10 @@ class PPOConfig:
     envs: environment slots stepped together (per rank); adaptive models play ``envs`` whole
         episodes per update instead of segments.
     steps: segment length (non-adaptive models; adaptive ones run to the episodes' end).
+    whole_episodes: non-adaptive models play ``envs`` whole episodes per update too, as the
+        adaptive ones always do (each replayed from its first step; a slot whose episode ended
+        idles until the update). Off: ``steps``-step segments. Issue 42's rows p and q ask whether
+        row o's gain over row l is the whole episodes or the updates per frame they bring.
     epochs, minibatches: passes over each batch of experience, and minibatches per pass (each a
         set of whole slot sequences, so the recurrent state is replayed from the segment's start).
     lr, adam_eps: Adam (``torch.optim.Adam``); ``lr_decay`` anneals lr linearly to 0 over the budget.
@@ -240,6 +244,7 @@ class PPOConfig:
 
     envs: int = 64
     steps: int = 32
+    whole_episodes: bool = False
     epochs: int = 4
     minibatches: int = 4
     lr: float = 3e-4

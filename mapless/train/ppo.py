@@ -10,7 +10,8 @@ Per update::
             loss = clipped surrogate + value_coef * value loss - entropy_coef * entropy
             backward, all-reduce over ranks, clip, Adam step
 
-Adaptive models (savn, gve, spatt, cvmeta) play whole episodes and replay each one through the
+Adaptive models (savn, gve, spatt, cvmeta) play whole episodes (the others too with
+``ppo.whole_episodes``, replayed from their first step) and replay each one through the
 meta-learning inner loop (:class:`~mapless.agent.meta.InnerLoop`), recomputed in every minibatch from
 the current parameters. SAVN's schedule, the default: after every k = ``model.interaction_steps``
 steps (at most ``model.max_inner_updates`` times) the fast weights take one SGD step on the learned
@@ -74,7 +75,8 @@ class PPOTrainer(SynchronousTrainer):
             self.sampler,
             self.obs_keys,
             self.device,
-            whole_episodes=adaptive,
+            whole_episodes=adaptive or cfg.ppo.whole_episodes,
+            adapting=adaptive,
             expert=cfg.ppo.imitation_coef > 0,
             bootstrap_time_limit=cfg.ppo.bootstrap_time_limit,
         )
@@ -96,7 +98,9 @@ class PPOTrainer(SynchronousTrainer):
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> dict[str, Any]:
         cfg, ppo = self.config, self.config.ppo
-        segment = self.collector.collect(cfg.env.max_steps if self.inner is not None else ppo.steps, self.rng)
+        segment = self.collector.collect(
+            cfg.env.max_steps if self.collector.whole_episodes else ppo.steps, self.rng
+        )
         advantages, returns = gae(
             segment.rewards,
             segment.values,

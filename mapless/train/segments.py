@@ -6,13 +6,15 @@ Two layouts, one :class:`Segment` type:
   episode ends takes a new one at once (no slot idles), the recurrent state is zeroed at episode
   starts and carried across segments, and time-limit truncations are bootstrapped with the value of
   the state the episode was cut in.
-* **whole episodes** (adaptive models): ``N`` episodes start together and run to their end
-  (``T`` = the training step limit), acting with SAVN's inner loop at its test-time setting: every
-  ``k`` steps one SGD step of the episode's own fast weights on the learned interaction loss. An
-  episode's adaptation state cannot be carried across a segment boundary into a replay, so each
-  replay starts at the episode's first step (docs/training.md, "PPO"). As in the references, the
-  30-step limit is not bootstrapped there, unless ``bootstrap_time_limit``: then, as for segments,
-  with V of the state the episode was cut in, under the episode's adapted fast weights.
+* **whole episodes** (adaptive models, and the others with ``ppo.whole_episodes``): ``N``
+  episodes start together and run to their end (``T`` = the training step limit); a slot whose
+  episode ended idles, masked out. Adaptive models act with SAVN's inner loop at its test-time
+  setting: every ``k`` steps one SGD step of the episode's own fast weights on the learned
+  interaction loss. An episode's adaptation state cannot be carried across a segment boundary into
+  a replay, so each replay starts at the episode's first step (docs/training.md, "PPO"). As in the
+  references, the 30-step limit is not bootstrapped there, unless ``bootstrap_time_limit``: then,
+  as for segments, with V of the state the episode was cut in (under the episode's adapted fast
+  weights).
 
 Actions are drawn by inverse CDF from uniforms of the trainer's numpy generator, so a run is
 reproducible from its seed and its checkpoint.
@@ -109,15 +111,19 @@ class SegmentCollector:
         obs_keys: tuple[str, ...],
         device: torch.device,
         whole_episodes: bool,
+        adapting: bool = False,
         expert: bool = False,
         bootstrap_time_limit: bool = False,
     ):
-        """``expert``: record the shortest-path expert's action at every step (imitation).
+        """``adapting``: act through the inner loop (adaptive models; needs ``whole_episodes``).
+        ``expert``: record the shortest-path expert's action at every step (imitation).
         ``bootstrap_time_limit``: whole episodes cut by the step limit are bootstrapped (segments
         always are)."""
+        if adapting and not whole_episodes:
+            raise ValueError("an adapting collector plays whole episodes (its fast weights start at θ)")
         self.model, self.env, self.sampler = model, env, sampler
         self.observation_keys, self.device = obs_keys, device
-        self.whole_episodes = whole_episodes
+        self.whole_episodes, self.adapting = whole_episodes, adapting
         # The references' R = 0 at the step limit: a truncation of a whole episode is an end.
         self.cut_is_end = np.bool_(whole_episodes and not bootstrap_time_limit)
         self.expert = expert
@@ -172,6 +178,7 @@ class SegmentCollector:
         if self.whole_episodes:
             self.loop.free[:] = True
             self._opening = True
+        if self.adapting:
             self._actor = AdaptingActor(self.model, n)
         self._rng, self._memo = rng, InViewMemo(max_rows=None)
         h0 = tuple(t.detach().clone() for t in self.memory.hidden)
