@@ -415,14 +415,17 @@ def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_p
     assert grads["lstm.weight_ih"].abs().sum() > 0
 
 
-def test_whole_episodes_make_a_plain_policy_play_each_slots_episode_to_its_end() -> None:
+@pytest.mark.parametrize("model", ["a3c", "cvmeta"])
+def test_whole_episodes_make_a_plain_policy_play_each_slots_episode_to_its_end(model: str) -> None:
     """``ppo.whole_episodes`` for a non-adaptive model: an update collects one episode per slot,
     each from step 0 to its end (not ``ppo.steps``), the slot idle and masked after it, the limit an
-    end; no inner loop acts, and the replay reproduces the acting policy on every step in the loss."""
+    end; no inner loop acts, and the replay reproduces the acting policy on every step in the loss,
+    with or without the idle steps encoded."""
 
     def trainer_with(*extra: str) -> PPOTrainer:
+        plain = ["model.adapt=none"] if model == "cvmeta" else []  # cvmeta as a plain recurrent policy
         config = tiny_config(
-            "a3c", "algo=ppo", "ppo.envs=6", "ppo.steps=3", "frames=100", "env.max_steps=9", *extra
+            model, "algo=ppo", "ppo.envs=6", "ppo.steps=3", "frames=100", "env.max_steps=9", *plain, *extra
         )
         trainer = PPOTrainer(config, None, fixture_library)
         trainer.build()
@@ -443,6 +446,12 @@ def test_whole_episodes_make_a_plain_policy_play_each_slots_episode_to_its_end()
     mask = segment.mask > 0
     assert torch.allclose(log_prob[mask], segment.log_prob[mask], atol=1e-5)
     assert torch.allclose(values[mask], segment.values[mask], atol=1e-5)
+    # Encoding only the steps taken (the update's replay) changes nothing where the loss reads.
+    logits_acted, values_acted = trainer.model.replay(
+        segment.obs, segment.prev_policy, segment.starts, segment.hidden, acted=mask
+    )
+    assert torch.allclose(logits_acted[mask], logits[mask], atol=1e-6)
+    assert torch.allclose(values_acted[mask], values[mask], atol=1e-6)
     assert trainer.update()["segment"].mask.shape[0] > 3  # the update plays to the episodes' end
     assert trainer_with().update()["segment"].mask.shape[0] == 3  # off: ppo.steps-step segments
 

@@ -48,6 +48,7 @@ from mapless.agent.fast_weights import FastWeightForward, FastWeightState, Step,
 from mapless.agent.low_rank import LowRankUpdates
 from mapless.agent.rollout_lstm import accumulate_grad
 from mapless.models.base import LOW_RANK, ModelOutput, NavModel
+from mapless.models.layers import scatter_rows
 
 
 @dataclass
@@ -265,26 +266,19 @@ def _low_rank_inner_product(
     size = state.batch_size
     outer_d = torch.stack(
         [
-            _scatter(torch.zeros_like(s.gates) if d is None else d, s.ids, size)
+            scatter_rows(torch.zeros_like(s.gates) if d is None else d, s.ids, size)
             for s, d in zip(later, outer, strict=True)
         ],
         dim=1,
     ).detach()
-    outer_r = torch.stack([_scatter(s.inputs.detach(), s.ids, size) for s in later], dim=1)
+    outer_r = torch.stack([scatter_rows(s.inputs.detach(), s.ids, size) for s in later], dim=1)
     acted = [s.updates for s in later]  # nondecreasing: the steps are in time order
     for i, (delta, right, ids) in enumerate(state.factor_records):
         # the steps that used θ_{i+1} or a later θ (θ_{j+1} = θ_j - α g_j.detach()): a suffix, a view
         first = bisect.bisect_right(acted, i)
         if first == len(acted):
             continue
-        deltas = torch.einsum("bso,bto->bst", _scatter(delta, ids, size), outer_d[:, first:])
-        inputs = torch.einsum("bsd,btd->bst", _scatter(right, ids, size), outer_r[:, first:])
+        deltas = torch.einsum("bso,bto->bst", scatter_rows(delta, ids, size), outer_d[:, first:])
+        inputs = torch.einsum("bsd,btd->bst", scatter_rows(right, ids, size), outer_r[:, first:])
         total = total + (deltas * inputs).sum()
     return total
-
-
-def _scatter(t: Tensor, ids: Tensor, size: int) -> Tensor:
-    """``t``'s rows placed at ``ids`` in a zero tensor of ``size`` rows (differentiable in ``t``)."""
-    if len(ids) == size:
-        return t
-    return t.new_zeros(size, *t.shape[1:]).index_copy(0, ids, t)

@@ -33,7 +33,7 @@ from mapless.actions import NUM_ACTIONS as NUM_ACTIONS  # the policy's width, fo
 from mapless.config import ConfigError
 from mapless.knowledge import Knowledge, load_knowledge
 from mapless.models.initialisation import glorot_init, init_heads_and_lstm
-from mapless.models.layers import lstm_state_from_gates, lstm_step
+from mapless.models.layers import lstm_state_from_gates, lstm_step, scatter_rows
 from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -386,7 +386,12 @@ class RecurrentNavModel(NavModel, abc.ABC):
         return FastStep(self._output(h, c, critic_input, fast), gates, inputs)
 
     def replay(
-        self, obs: dict[str, Tensor], prev_policy: Tensor, starts: Tensor, hidden: tuple[Tensor, Tensor]
+        self,
+        obs: dict[str, Tensor],
+        prev_policy: Tensor,
+        starts: Tensor,
+        hidden: tuple[Tensor, Tensor],
+        acted: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """``(logits [T, B, A], values [T, B])`` over a recorded segment (the PPO update's forward).
 
@@ -397,14 +402,26 @@ class RecurrentNavModel(NavModel, abc.ABC):
         does not read the recurrent state (every non-adaptive model) the encoder runs once over all
         ``T · B`` rows and the LSTM's input product ``W_ih x`` is one matrix product; only ``W_hh h``
         is computed step by step. The values are those of ``T`` calls of ``forward`` up to rounding
-        (tests/test_ppo.py). ``hidden``: ``(h, c)`` ``[B, H]`` before the first step."""
+        (tests/test_ppo.py). ``hidden``: ``(h, c)`` ``[B, H]`` before the first step. ``acted [T, B]``
+        (bool): the steps a slot took; only those are encoded (whole episodes leave a slot idle after
+        its end), and the outputs of the others are meaningless, for the loss to mask out."""
         steps, batch = starts.shape
         flat = {key: value.flatten(0, 1) for key, value in obs.items()}
-        flat_hidden = self.initial_state(steps * batch, prev_policy.device)  # unread by these encoders
+        flat_policy = prev_policy.flatten(0, 1)
+        rows = None if acted is None else acted.flatten().nonzero().squeeze(1)
+        if rows is not None:
+            flat = {key: value.index_select(0, rows) for key, value in flat.items()}
+            flat_policy = flat_policy.index_select(0, rows)
+        flat_hidden = self.initial_state(len(flat_policy), prev_policy.device)  # unread by these encoders
         cell = self.lstm
         # The labels name the parts in profiles (bench/frame_cost.py); they cost nothing otherwise.
         with record_function("encoder"):
-            x, critic_input = self._encoded(flat, flat_hidden, prev_policy.flatten(0, 1))
+            x, critic_input = self._encoded(flat, flat_hidden, flat_policy)
+            if rows is not None:
+                x = scatter_rows(x, rows, steps * batch)
+                critic_input = (
+                    None if critic_input is None else scatter_rows(critic_input, rows, steps * batch)
+                )
             input_gates = F.linear(x, cell.weight_ih, cell.bias_ih + cell.bias_hh).view(steps, batch, -1)
         keep = (~starts).to(x.dtype).unsqueeze(-1)
         h, c = hidden

@@ -15,6 +15,13 @@ from torch import Tensor, nn
 from mapless.knowledge import normalize_adjacency
 
 
+def scatter_rows(t: Tensor, ids: Tensor, size: int) -> Tensor:
+    """``t``'s rows placed at ``ids`` in a zero tensor of ``size`` rows (differentiable in ``t``)."""
+    if len(ids) == size:
+        return t
+    return t.new_zeros(size, *t.shape[1:]).index_copy(0, ids, t)
+
+
 def lstm_step(x: Tensor, hidden: tuple[Tensor, Tensor], cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
     """``nn.LSTMCell`` math (gate order i, f, g, o) written out so that it works under vmap with
     per-episode weights and under functional_call."""

@@ -182,7 +182,11 @@ class PPOTrainer(SynchronousTrainer):
                 obs = {k: v[:, columns] for k, v in segment.obs.items()}
                 hidden = tuple(t.index_select(0, columns) for t in segment.hidden)
                 starts = segment.starts[:, columns]
-                logits, values = self.model.replay(obs, segment.prev_policy[:, columns], starts, hidden)
+                # Whole episodes: a slot idles after its episode ends; its padded steps go unencoded.
+                acted = mask > 0 if self.collector.whole_episodes else None
+                logits, values = self.model.replay(
+                    obs, segment.prev_policy[:, columns], starts, hidden, acted
+                )
                 state = None
             else:
                 logits, values, state = self.replay_episodes(segment, columns)
