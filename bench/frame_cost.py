@@ -1,7 +1,8 @@
 """Per-frame cost of every trainable model in the PPO recipe, side by side with the mlp sanity model.
 
 For each model a real segment is collected in the training scenes (``ppo.envs`` slots; whole episodes
-for adaptive models and under ``ppo.whole_episodes``) and then, model by model in turns (this machine's speed drifts), timed:
+for adaptive models and under ``ppo.whole_episodes``) and then, model by model in turns (this
+machine's speed drifts), timed:
 
 * acting: frames/s of the collection (forward passes without gradient, memo on);
 * update: frame-passes/s of one PPO minibatch's replay, forward + backward (segments through
@@ -66,9 +67,8 @@ def build_trained(run_dir: Path):
 
 
 def time_acting(trainer) -> tuple[float, object]:
-    steps = trainer.config.env.max_steps if trainer.collector.whole_episodes else trainer.config.ppo.steps
     start = time.perf_counter()
-    segment = trainer.collector.collect(steps, trainer.rng)
+    segment = trainer.collector.collect(trainer.rollout_steps, trainer.rng)
     return segment.frames / (time.perf_counter() - start), segment
 
 

@@ -86,6 +86,12 @@ class PPOTrainer(SynchronousTrainer):
             [named[n] for n in self.model.learned_loss_parameter_names()] if adaptive else []
         )
 
+    @property
+    def rollout_steps(self) -> int:
+        """Steps per collection: the step limit for whole episodes (they run to their end), else
+        the segment length."""
+        return self.config.env.max_steps if self.collector.whole_episodes else self.config.ppo.steps
+
     def _rng_state(self) -> dict:
         return {**super()._rng_state(), "collector": self.collector.state_dict()}
 
@@ -97,10 +103,8 @@ class PPOTrainer(SynchronousTrainer):
 
     # -- one update ------------------------------------------------------------------------------
     def update(self) -> dict[str, Any]:
-        cfg, ppo = self.config, self.config.ppo
-        segment = self.collector.collect(
-            cfg.env.max_steps if self.collector.whole_episodes else ppo.steps, self.rng
-        )
+        ppo = self.config.ppo
+        segment = self.collector.collect(self.rollout_steps, self.rng)
         advantages, returns = gae(
             segment.rewards,
             segment.values,
