@@ -28,6 +28,7 @@ import hashlib
 import json
 import re
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -237,28 +238,39 @@ def snapshots(run_dir: str | Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
-def training_clock(run_dir: str | Path) -> tuple[list[int], list[float]]:
-    """``(frames, training seconds)`` at every record of a run's :data:`METRICS_FILE`; empty lists
-    when it has none. Each record holds its interval's frames/s, so the seconds add up the intervals
-    timed at their own rate: the pause before a resumed run is left out, and so are the records a
-    killed run wrote after its last checkpoint, whose work the resumed run did again (frames go
-    back). Lines that do not parse (a record torn by a kill) are passed over."""
+def training_log(run_dir: str | Path, keys: Sequence[str] = ()) -> dict[str, list[float]]:
+    """``frames``, ``seconds`` (the training clock) and each scalar of ``keys`` at every record of a
+    run's :data:`METRICS_FILE`; empty lists when it has none. Each record holds its interval's
+    frames/s, so the seconds add up the intervals timed at their own rate: the pause before a resumed
+    run is left out, and so are the records a killed run wrote after its last checkpoint, whose work
+    the resumed run did again (frames go back). Lines that do not parse (a record torn by a kill) or
+    lack one of ``keys`` are passed over."""
     path = Path(run_dir) / METRICS_FILE
-    frames: list[int] = []
-    seconds: list[float] = []
+    log: dict[str, list[float]] = {"frames": [], "seconds": [], **{key: [] for key in keys}}
+    frames, seconds = log["frames"], log["seconds"]
     for line in path.read_text().splitlines() if path.is_file() else []:
         try:
             record = json.loads(line)
             now, rate = int(record["frames"]), float(record["perf/frames_per_s"])
+            values = [float(record[key]) for key in keys]
         except (ValueError, KeyError, TypeError):
             continue
         while frames and frames[-1] >= now:
-            frames.pop()
-            seconds.pop()
+            for series in log.values():
+                series.pop()
         interval = (now - frames[-1] if frames else now) / rate if rate > 0 else 0.0
         seconds.append((seconds[-1] if seconds else 0.0) + interval)
         frames.append(now)
-    return frames, seconds
+        for key, value in zip(keys, values, strict=True):
+            log[key].append(value)
+    return log
+
+
+def training_clock(run_dir: str | Path) -> tuple[list[int], list[float]]:
+    """``(frames, training seconds)`` at every record of a run's :data:`METRICS_FILE`
+    (:func:`training_log`)."""
+    log = training_log(run_dir)
+    return [int(f) for f in log["frames"]], log["seconds"]
 
 
 def resolve_model_file(path: str | Path) -> Path:

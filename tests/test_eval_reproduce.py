@@ -509,6 +509,12 @@ ablation_rows: [a_unadapted, c_no_parent]
     md = (reports / "ablation" / "ablation.md").read_text()
     assert "Δ false Done" in md and "c_no_parent" in md and "z_unused" not in md
     assert "Row a_unadapted acts exactly as cvmeta (the same snapshots and action draws" in md
+    # The trained runs' training logs, drawn and compared at equal frames; row a trained nothing.
+    curve = no_parent["runs"][0]["training"]
+    assert curve["frames"] == sorted(curve["frames"]) and len(curve["success"]) == len(curve["frames"])
+    assert "training" not in unadapted["runs"][0]
+    assert (reports / "ablation" / "ablation_training.png").is_file()
+    assert "| model | frames trained | success at " in md
 
 
 def test_an_ablation_row_that_changes_nothing_or_names_no_row_is_refused(tmp_path):

@@ -12,7 +12,7 @@ from eval_fixtures import fixture_episodes, fixture_library
 from train_fixtures import fixture_library as training_scenes
 from train_fixtures import tiny_config
 
-from mapless.checkpoint import load_file, training_clock
+from mapless.checkpoint import load_file, training_clock, training_log
 from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
@@ -27,6 +27,7 @@ from mapless.evaluate.selection import (
     load_episodes,
     select_and_report,
 )
+from mapless.experiments.render import mean_near, training_curves
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
 from mapless.train.run import train
@@ -57,6 +58,40 @@ def test_training_clock_adds_up_the_logged_intervals_and_leaves_out_a_resume_pau
     (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
     assert training_clock(tmp_path) == ([100, 300, 450], [2.0, 4.0, 6.0])
     assert training_clock(tmp_path / "no-such-run") == ([], [])
+
+
+def test_training_log_keeps_each_scalar_beside_its_frames_through_a_resume(tmp_path):
+    records = [
+        {"frames": 100, "perf/frames_per_s": 50.0, "charts/success": 0.1},
+        {"frames": 300, "perf/frames_per_s": 100.0, "charts/success": 0.3},
+        {"frames": 350, "perf/frames_per_s": 100.0},  # no success logged: passed over
+        {"frames": 500, "perf/frames_per_s": 100.0, "charts/success": 0.5},  # done again after a resume
+        {"frames": 400, "perf/frames_per_s": 100.0, "charts/success": 0.4},
+    ]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    log = training_log(tmp_path, ("charts/success",))
+    assert log == {"frames": [100, 300, 400], "seconds": [2.0, 4.0, 5.0], "charts/success": [0.1, 0.3, 0.4]}
+
+
+def test_the_training_table_compares_runs_at_the_frames_every_run_reached(tmp_path):
+    def curve(frames, success, entropy):
+        return {"frames": frames, "success": success, "entropy": entropy}
+
+    slow = curve([100, 200, 300, 400], [0.1, 0.2, 0.3, 0.4], [1.0, 0.9, 0.8, 0.7])
+    fast = curve([200, 400, 600, 800], [0.2, 0.4, 0.6, 0.8], [1.0, 0.5, 0.4, 0.3])
+    records = [{"model": "slow", "runs": [{"training": slow}]}, {"model": "fast", "runs": [{"training": fast}]},
+               {"model": "random", "runs": [{}]}]  # fmt: skip
+    lines = training_curves(records, tmp_path / "t.png")
+    assert (tmp_path / "t.png").stat().st_size > 10_000
+    rows = [line for line in "\n".join(lines).splitlines() if line.startswith(("| slow", "| fast"))]
+    # 400 frames are the fewest any run trained: quarter 100 (fast: nearest record, 200), half 200, all 400
+    assert rows[0] == "| slow | 400 | 10.0 | 20.0 | 40.0 | 40.0 | 0.70 | 0.70 |"
+    assert rows[1] == "| fast | 800 | 20.0 | 20.0 | 40.0 | 80.0 | 0.50 | 0.30 |"
+    assert mean_near(
+        curve([95, 100, 104, 200], [0.1, 0.2, 0.6, 0.9], [0, 0, 0, 0]), "success", 100
+    ) == pytest.approx(0.3)
+    assert training_curves([{"model": "random", "runs": [{}]}], tmp_path / "none.png") == []
+    assert not (tmp_path / "none.png").exists()
 
 
 def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path):

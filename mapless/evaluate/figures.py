@@ -1,6 +1,7 @@
 """Figures of the paper: ratio-of-exploration curves (Figure 3) and top-down trajectories of several
 models on the same episode (Figure 4), a failure case (Figure 5), and an optional egocentric GIF;
-beside Table 1, validation success against training frames and minutes."""
+beside Table 1, validation success against training frames and minutes, and the training episodes' success
+and policy entropy."""
 
 from __future__ import annotations
 
@@ -71,6 +72,30 @@ def model_style(i: int) -> tuple[str, str]:
     return colour, ("o-", "s--", "^:")[(i // len(MODEL_COLOURS)) % 3]
 
 
+def _two_panels(labels: set[str], sharey: bool = False):
+    """A figure of two panels side by side with room below them for a legend of many or long
+    ``labels`` (inside an axes they squeeze it); returns ``(plt, fig, axes, legend_rows)``."""
+    plt = _pyplot()
+    below = len(labels) > 4 or max(len(label) for label in labels) > 40
+    legend_rows = (len(labels) + 1) // 2 if below else 0
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4 + 0.3 * legend_rows), sharey=sharey)
+    return plt, fig, axes, legend_rows
+
+
+def _legend_and_save(plt, fig, axes, legend_rows: int, path: Path) -> None:
+    if not legend_rows:
+        axes[0].legend()
+        fig.tight_layout()
+    else:
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=2, fontsize="small", frameon=False)
+        fig.tight_layout(rect=(0, 0.3 * legend_rows / (4 + 0.3 * legend_rows) + 0.02, 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # A long row label in the two-column legend is wider than half the figure: the tight box keeps it.
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
 def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -> bool:
     """Validation SR at every snapshot a selection scored, against training frames (left) and
     training minutes (right): one colour per model, one line per seed, the chosen snapshot ringed.
@@ -88,12 +113,7 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
     ]
     if not any(points for *_, points in seeds):
         return False
-    plt = _pyplot()
-    labels = {label for _, label, _, _ in seeds}
-    # Many or long labels go below the curves: inside an axes they squeeze it.
-    below = len(labels) > 4 or max(len(label) for label in labels) > 40
-    legend_rows = (len(labels) + 1) // 2 if below else 0
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4 + 0.3 * legend_rows), sharey=True)
+    plt, fig, axes, legend_rows = _two_panels({label for _, label, _, _ in seeds}, sharey=True)
     labelled = set()  # one legend entry per model, however many seeds
     for i, label, chosen, points in seeds:
         colour, line = model_style(i)
@@ -115,17 +135,41 @@ def validation_figure(selections: Mapping[str, Sequence[Mapping]], path: Path) -
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
     fig.suptitle("Validation success at every snapshot (ringed: the one selected and reported)")
-    if not legend_rows:
-        axes[0].legend()
-        fig.tight_layout()
-    else:
-        handles, labels = axes[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="lower center", ncol=2, fontsize="small", frameon=False)
-        fig.tight_layout(rect=(0, 0.3 * legend_rows / (4 + 0.3 * legend_rows) + 0.02, 1, 1))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # A long row label in the two-column legend is wider than half the figure: the tight box keeps it.
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    _legend_and_save(plt, fig, axes, legend_rows, path)
+    return True
+
+
+def training_figure(curves: Mapping[str, Sequence[Mapping]], path: Path) -> bool:
+    """What the training episodes said as a run trained, against its training frames: the share of
+    them ended by a successful Done (left) and the policy's mean entropy per step (right); one colour
+    per model, one line per seed.
+
+    ``curves``: model -> per seed, its training log as the reports keep it (``frames``, ``success``
+    and ``entropy`` lists, one entry per logged interval). Returns False, and writes nothing, when
+    no seed has a record.
+    """
+    seeds = [
+        (i, label, c) for i, (label, per_seed) in enumerate(curves.items()) for c in per_seed if c["frames"]
+    ]
+    if not seeds:
+        return False
+    plt, fig, axes, legend_rows = _two_panels({label for _, label, _ in seeds})
+    labelled = set()
+    for i, label, curve in seeds:
+        colour, line = model_style(i)
+        thousands = [f * 1e-3 for f in curve["frames"]]
+        axes[0].plot(thousands, [100 * s for s in curve["success"]], line[1:] or "-", color=colour,
+                     label=None if label in labelled else label)  # fmt: skip
+        axes[1].plot(thousands, curve["entropy"], line[1:] or "-", color=colour)
+        labelled.add(label)
+    axes[0].set_ylabel("training success (%)")
+    axes[1].set_ylabel("policy entropy (nats per step)")
+    for ax in axes:
+        ax.set_xlabel("training frames (thousands)")
+        ax.grid(alpha=0.3)
+        ax.set_ylim(bottom=0)
+    fig.suptitle("The training episodes: success and policy entropy at every logged interval")
+    _legend_and_save(plt, fig, axes, legend_rows, path)
     return True
 
 

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from mapless.checkpoint import training_log
 from mapless.evaluate.metrics import compared_metrics, same_actions
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.selection import cache_file, episodes_digest
@@ -67,7 +68,25 @@ def _model_results(
         results, info = ev.trained(run.run_dir, run.config, within_minutes)
         per_seed.append(results)
         meta.append({"run_dir": str(run.run_dir), **info})
+        if within_minutes is None:
+            meta[-1]["training"] = training_curve(run.run_dir)
     return per_seed, meta
+
+
+#: The training log's scalars a report draws (mapless.train.monitor): the share of training episodes
+#: ended by a successful Done, and the policy's mean entropy per step.
+TRAINING_CURVE = {"success": "charts/success", "entropy": "losses/entropy"}
+
+
+def training_curve(run_dir: Path) -> dict[str, list]:
+    """A run's :data:`TRAINING_CURVE` at every record of its training log, with its frames and
+    training minutes, as a report keeps it (rounded: it is drawn, not computed on)."""
+    log = training_log(run_dir, tuple(TRAINING_CURVE.values()))
+    return {
+        "frames": log["frames"],
+        "minutes": [round(s / 60, 3) for s in log["seconds"]],
+        **{name: [round(v, 4) for v in log[key]] for name, key in TRAINING_CURVE.items()},
+    }
 
 
 def _setting(config: ExperimentConfig, ev: Evaluator) -> Setting:

@@ -4,8 +4,10 @@ the figures' PNGs (and GIF) in one folder. Nothing here trains or evaluates."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+
+import numpy as np
 
 from mapless.config import to_dict
 from mapless.evaluate.metrics import compared_metrics, main_metrics
@@ -72,6 +74,7 @@ def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered
     lines = _header(record.setting, "Table 1: navigation results on unseen scenes", command)
     lines += [model_table(records), "", *_focus_differences(record.setting.config.focus, records)]
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
+    lines += training_curves(records, out / f"{experiment}_training.png")
     lines += _by_minutes(record)
     lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     for rec in records:
@@ -130,6 +133,63 @@ def _validation_curves(records: list[dict], path: Path) -> list[str]:
         f"![validation success per snapshot]({path.name})",
         "",
     ]
+
+
+def training_curves(records: list[dict], path: Path) -> list[str]:
+    """The figure of every trained run's training episodes, and the table that compares the models
+    at equal frames: whether one learns less per frame or only sees fewer frames in its minutes."""
+    from mapless.evaluate.figures import training_figure
+
+    curves = {
+        rec["model"]: [
+            run["training"] for run in rec.get("runs", []) if run.get("training", {}).get("frames")
+        ]
+        for rec in records
+    }
+    curves = {model: per_seed for model, per_seed in curves.items() if per_seed}
+    if not curves or not training_figure(curves, path):
+        return []
+    fewest = min(curve["frames"][-1] for per_seed in curves.values() for curve in per_seed)
+    marks = (fewest / 4, fewest / 2, fewest)
+    rows = [
+        [
+            model,
+            _frames(np.mean([c["frames"][-1] for c in per_seed])),
+            *(f"{100 * np.mean([mean_near(c, 'success', f) for c in per_seed]):.1f}" for f in marks),
+            f"{100 * np.mean([mean_near(c, 'success', None) for c in per_seed]):.1f}",
+            *(f"{np.mean([mean_near(c, 'entropy', f) for c in per_seed]):.2f}" for f in (fewest, None)),
+        ]
+        for model, per_seed in curves.items()
+    ]
+    header = ["model", "frames trained", *(f"success at {_frames(f)}" for f in marks), "success at its end",
+              f"entropy at {_frames(fewest)}", "entropy at its end"]  # fmt: skip
+    return [
+        "What the training episodes said (the share ended by a successful Done, and the policy's "
+        "entropy per step; one line per seed):",
+        "",
+        f"![training success and entropy]({path.name})",
+        "",
+        "The same at equal frames (the fewest any run trained, its half and its quarter), and at each "
+        "run's end; each cell averages the log's records within 5 % of the frames, then the seeds, "
+        "success in %:",
+        "",
+        markdown(header, rows),
+        "",
+    ]
+
+
+def _frames(count: float) -> str:
+    return f"{count / 1e3:,.0f}k" if count >= 10_000 else f"{count:,.0f}"
+
+
+def mean_near(curve: Mapping[str, Sequence[float]], key: str, frames: float | None) -> float:
+    """The mean of a training curve's ``key`` over its records within 5 % of ``frames`` (None: the
+    run's last frames), or at the record nearest to them when none lies that close."""
+    at = np.asarray(curve["frames"], dtype=float)
+    values = np.asarray(curve[key], dtype=float)
+    frames = at[-1] if frames is None else frames
+    near = np.abs(at - frames) <= 0.05 * frames
+    return float(values[near].mean() if near.any() else values[np.argmin(np.abs(at - frames))])
 
 
 def _focus_differences(focus: str, records: list[dict]) -> list[str]:
@@ -240,6 +300,7 @@ def ablation(experiment: str, record: Ablation, out: Path, command: str) -> Rend
                 "",
             ]
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
+    lines += training_curves(records, out / f"{experiment}_training.png")
     lines += ["Secondary metrics (mean over seeds):", "", details_table(records), ""]
     return _payload(experiment, record.setting, models=records), lines
 
