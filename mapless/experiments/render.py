@@ -151,13 +151,16 @@ def training_curves(records: list[dict], path: Path) -> list[str]:
         return []
     fewest = min(curve["frames"][-1] for per_seed in curves.values() for curve in per_seed)
     marks = (fewest / 4, fewest / 2, fewest)
+
+    def over_seeds(per_seed: list[dict], key: str, frames: float | None) -> float:
+        return float(np.mean([mean_near(curve, key, frames) for curve in per_seed]))
+
     rows = [
         [
             model,
             _frames(np.mean([c["frames"][-1] for c in per_seed])),
-            *(f"{100 * np.mean([mean_near(c, 'success', f) for c in per_seed]):.1f}" for f in marks),
-            f"{100 * np.mean([mean_near(c, 'success', None) for c in per_seed]):.1f}",
-            *(f"{np.mean([mean_near(c, 'entropy', f) for c in per_seed]):.2f}" for f in (fewest, None)),
+            *(f"{100 * over_seeds(per_seed, 'success', f):.1f}" for f in (*marks, None)),
+            *(f"{over_seeds(per_seed, 'entropy', f):.2f}" for f in (fewest, None)),
         ]
         for model, per_seed in curves.items()
     ]
