@@ -15,7 +15,9 @@ nothing else changed), and the composition rules; then the long budget's ablatio
 ablation's rows j (model.context_distance), k (with model.semantic_map) and l (k without
 meta-learning), then m (k with φ frozen, meta.train_learned_loss), n and o (cvmeta and k with no inner
 step), p and q (l with whole episodes, ppo.whole_episodes, or two minibatches), added without moving
-any run folder."""
+any run folder. On 2026-12-07 the medium budget (and the long one, which extends it) took row f's
+second-order meta-gradient for cvmeta, moving those two budgets' Table 1 cvmeta folders onto row f's
+training, and the ablation pinned its first-order base, moving none of its rows."""
 
 from __future__ import annotations
 
@@ -103,8 +105,23 @@ def test_the_medium_budget_is_small_for_longer_nested_keys_merged() -> None:
     # per_model.cvmeta of medium sets frames and checkpoints only: small's model widths and PPO
     # minibatches survive the merge.
     assert cvmeta_medium.model == cvmeta_small.model and cvmeta_medium.model.gcn_hidden == 64
-    assert cvmeta_medium.ppo == cvmeta_small.ppo and cvmeta_medium.meta.first_order
-    assert cvmeta_medium.frames > cvmeta_small.frames
+    assert cvmeta_medium.ppo == cvmeta_small.ppo and cvmeta_medium.frames > cvmeta_small.frames
+    # The one change of recipe: the hour's cvmeta takes the second-order meta-gradient (row f).
+    assert cvmeta_small.meta.first_order and not cvmeta_medium.meta.first_order
+
+
+@pytest.mark.parametrize("budget", ["medium", "long"])
+def test_the_hours_cvmeta_trains_as_the_ablations_row_f_on_its_first_order_base(budget: str) -> None:
+    table1 = load_experiment("table1", budget, overrides=["eval.protocol=reference"])
+    ablation = load_experiment("ablation", budget, overrides=["eval.protocol=reference"])
+    cvmeta = train_config(table1, "cvmeta", 1)
+    base = train_config(ablation, "cvmeta", 1)
+    row_f = train_config(ablation, "cvmeta", 1, ablation.ablation_table()["f_second_order"].train)
+    assert base.meta.first_order and not row_f.meta.first_order
+    # The same training, so the same hash: Table 1 reuses row f's runs once they sit in its folder.
+    digest = run_dir_for(table1, cvmeta, "all").name.split("__")[-1]
+    assert digest == run_dir_for(ablation, row_f, "ablation-f_second_order").name.split("__")[-1]
+    assert digest != run_dir_for(ablation, base, "all").name.split("__")[-1]
 
 
 def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path: Path) -> None:
