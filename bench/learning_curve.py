@@ -6,8 +6,10 @@ pauses every ``--eval-every`` minutes of training to evaluate the current policy
 the built-in val set (``--val-episodes``, the same episodes for every run, actions sampled as the
 evaluator does), and prints SR / SPL against minutes and frames, the time to reach ``--target`` val SR
 (46 %: MJOLNIR-o's test SR after 100k episodes), and one PNG of SR against minutes.
-``--protocol reference`` trains under the 1.5 m success rule and evaluates on its ``ref_val`` set
-(the scenes must be built for it: ``mapless scenes build --sim visibility_distance=1.5``).
+``--protocol reference`` trains under the 1.5 m success rule on the published episodes' classes and
+evaluates on its ``ref_val`` set (the published val episodes; ``--set env.target_set=mjolnir22``:
+the project's sampled ones); the scenes must be built for it: ``mapless scenes build --sim
+visibility_distance=1.5``.
 
 Runs go ``--parallel`` at a time, each in its own spawned process on one thread (this machine has 2
 cores), so two runs side by side see the same machine.
@@ -54,12 +56,13 @@ def run_config(run: str, overrides: list[str]):
     return from_dict(TrainConfig, with_recipe(apply_overrides(data, [*overrides, *own])))
 
 
-def val_subset(count: int, split: str = "val"):
-    """The first ``count / 4`` episodes of every room type in the built-in ``split`` set."""
+def val_subset(count: int, split: str = "val", target_set: str = "mjolnir22"):
+    """The first ``count / 4`` episodes of every room type in the built-in ``split`` set of
+    ``target_set`` (the reference protocol's of hoz22: the published val episodes)."""
     from mapless.episodes.evalsets import builtin_path, load
     from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 
-    episodes, _ = load(builtin_path(split))
+    episodes, _ = load(builtin_path(split, target_set))
     per_room = max(1, count // len(ROOM_TYPES))
     chosen = [[e for e in episodes if room_type_of(e.scene) == room][:per_room] for room in ROOM_TYPES]
     return [e for room in chosen for e in room]
@@ -100,7 +103,7 @@ def train_and_evaluate(job: tuple[str, list[str], float, float, int, str]) -> di
     trainer = (PPOTrainer if config.algo == "ppo" else BatchedTrainer)(config, None)
     trainer.build()
     library = BuiltinLibrary(config)()
-    episodes = val_subset(val_episodes, val_split)
+    episodes = val_subset(val_episodes, val_split, config.env.target_set)
     points = [{"minutes": 0.0, "frames": 0, **evaluate_policy(trainer.model, library, episodes)}]
     print(f"{run}: 0.0 min, 0 frames, val SR {points[0]['sr']:.1f}", flush=True)
     trained, frames, next_eval = 0.0, 0, eval_every * 60
@@ -183,7 +186,8 @@ def main() -> None:
         "--protocol",
         choices=("standard", "reference"),
         default="standard",
-        help="standard: success within 1.0 m, val x21-x25; reference: 1.5 m (training too), ref_val",
+        help="standard: success within 1.0 m, val x21-x25; reference: 1.5 m (training too), ref_val, "
+        "on the published episodes' classes",
     )
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every run"
@@ -192,7 +196,7 @@ def main() -> None:
     args = parser.parse_args()
     runs = args.run or ["mlp", "cvmeta"]
     protocol = get_protocol(args.protocol)
-    overrides = [f"env.sim.visibility_distance={protocol.visibility_distance}", *args.set]
+    overrides = [*protocol.train_overrides(), *args.set]  # a run's own target set wins
     for run in runs:  # every config is validated before any training starts
         run_config(run, overrides)
     jobs = [

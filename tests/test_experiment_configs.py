@@ -112,7 +112,10 @@ def test_the_medium_budget_is_small_for_longer_nested_keys_merged() -> None:
 
 @pytest.mark.parametrize("budget", ["medium", "long"])
 def test_the_hours_cvmeta_trains_as_the_ablations_row_f_on_its_first_order_base(budget: str) -> None:
-    table1 = load_experiment("table1", budget, overrides=["eval.protocol=reference"])
+    # On the paper's targets, the ablation's (the reference protocol's own default is hoz22's).
+    table1 = load_experiment(
+        "table1", budget, overrides=["eval.protocol=reference", "train.env.target_set=mjolnir22"]
+    )
     ablation = load_experiment("ablation", budget, overrides=["eval.protocol=reference"])
     cvmeta = train_config(table1, "cvmeta", 1)
     base = train_config(ablation, "cvmeta", 1)
@@ -122,6 +125,33 @@ def test_the_hours_cvmeta_trains_as_the_ablations_row_f_on_its_first_order_base(
     digest = run_dir_for(table1, cvmeta, "all").name.split("__")[-1]
     assert digest == run_dir_for(ablation, row_f, "ablation-f_second_order").name.split("__")[-1]
     assert digest != run_dir_for(ablation, base, "all").name.split("__")[-1]
+
+
+@pytest.mark.parametrize("experiment", ["table1", "table2", "table3", "figure3"])
+def test_the_reference_protocol_trains_on_the_published_episodes_classes_unless_told(experiment: str) -> None:
+    reference = load_experiment(experiment, "small", overrides=["eval.protocol=reference"])
+    standard = load_experiment(experiment, "small")
+    assert train_config(reference, "cvmeta", 1).env.target_set == "hoz22"
+    assert train_config(standard, "cvmeta", 1).env.target_set == "mjolnir22"
+    told = load_experiment(
+        experiment, "small", overrides=["eval.protocol=reference", "train.env.target_set=savn"]
+    )
+    assert train_config(told, "cvmeta", 1).env.target_set == "savn"
+    # A model's own per_model entry names it too, and wins over the protocol's.
+    per_model = load_experiment(
+        experiment, "small", overrides=["eval.protocol=reference", "per_model.a3c.env.target_set=mjolnir22"]
+    )
+    assert train_config(per_model, "a3c", 1).env.target_set == "mjolnir22"
+    assert train_config(per_model, "cvmeta", 1).env.target_set == "hoz22"
+
+
+@pytest.mark.parametrize("experiment", ["ablation", "layout_shift"])
+def test_the_ablation_and_the_layout_shift_keep_the_papers_targets_under_every_protocol(
+    experiment: str,
+) -> None:
+    for protocol in ("standard", "reference"):
+        config = load_experiment(experiment, "small", overrides=[f"eval.protocol={protocol}"])
+        assert train_config(config, "cvmeta", 1).env.target_set == "mjolnir22"
 
 
 def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path: Path) -> None:

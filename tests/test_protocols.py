@@ -75,6 +75,27 @@ def test_a_reference_experiment_trains_under_the_reference_rule():
     contradicting = dataclasses.replace(reference, train={"env": {"sim": {"visibility_distance": 1.0}}})
     with pytest.raises(ConfigError, match="contradicts the reference protocol"):
         train_config(contradicting, "a3c", 1)
+    # ...and on the classes of its episodes, the published ones', unless the experiment names others.
+    assert train_config(reference, "a3c", 1).env.target_set == "hoz22"
+    assert train_config(standard, "a3c", 1).env.target_set == "mjolnir22"
+    named = dataclasses.replace(reference, train={"episodes": 10, "env": {"target_set": "savn"}})
+    assert train_config(named, "a3c", 1).env.target_set == "savn"
+
+
+def test_mapless_train_for_the_reference_protocol_takes_its_classes_unless_told(tmp_path: Path):
+    from mapless.cli.train import protocol_overrides
+
+    bare, named = tmp_path / "bare.yaml", tmp_path / "named.yaml"
+    bare.write_text("model: {name: a3c}\n")
+    named.write_text("model: {name: a3c}\nenv: {target_set: mjolnir22}\n")
+    rule = "env.sim.visibility_distance=1.5"
+    assert protocol_overrides("reference", bare, []) == [rule, "env.target_set=hoz22"]
+    assert protocol_overrides("reference", named, []) == [rule]  # the file's choice stands
+    assert protocol_overrides("reference", bare, ["env.target_set=savn"]) == [rule]
+    assert protocol_overrides("standard", bare, []) == [
+        "env.sim.visibility_distance=1.0",
+        "env.target_set=mjolnir22",
+    ]
 
 
 # ------------------------------------------------------------------ samplers on a scene with an island

@@ -125,10 +125,12 @@ def _reference(*overrides: str):
     )
 
 
-@pytest.mark.parametrize("target_set", ["mjolnir22", "hoz22"])
+@pytest.mark.parametrize("target_set", ["mjolnir22", "hoz22", None])
 def test_the_reference_protocol_reads_the_training_target_sets_sets(target_set):
-    # mjolnir22 (the default): the project's sampled sets; hoz22: the published HOZ episodes.
-    ev = Evaluator(_reference(f"train.env.target_set={target_set}"), log=print)
+    # hoz22 (the protocol's default, None): the published HOZ episodes; mjolnir22: the sampled sets.
+    told = [f"train.env.target_set={target_set}"] if target_set else []
+    ev = Evaluator(_reference(*told), log=print)
+    target_set = target_set or "hoz22"
     for split, episodes in (("ref_val", ev.select_episodes), ("ref_test", ev.report_episodes)):
         shipped, header = evalsets.load(evalsets.builtin_path(split, target_set))
         assert header["target_set"] == target_set
@@ -142,7 +144,8 @@ def test_an_explicit_file_still_overrides_the_sets_when_its_targets_fit(tmp_path
     shipped, header = evalsets.load(evalsets.builtin_path("ref_test"))
     last = shipped[-3:]  # bathroom episodes the first 3 per room type do not hold
     evalsets.save(tmp_path / "mine.json.gz", last, "ref_test", "mjolnir22", 0, header["sim_fingerprint"])
-    ev = Evaluator(_reference(f"eval.report_file={tmp_path / 'mine.json.gz'}"), log=print)
+    mine = f"eval.report_file={tmp_path / 'mine.json.gz'}"
+    ev = Evaluator(_reference(mine, "train.env.target_set=mjolnir22"), log=print)
     assert ev.report_episodes == last and ev.select_episodes == first_per_room(
         evalsets.load(evalsets.builtin_path("ref_val"))[0], 3
     )
@@ -150,16 +153,18 @@ def test_an_explicit_file_still_overrides_the_sets_when_its_targets_fit(tmp_path
 
 def test_an_experiment_refuses_episodes_its_runs_never_trained_for(tmp_path, capsys):
     with pytest.raises(MaplessError, match=r"--set train.env.target_set=hoz22") as error:
-        Evaluator(_reference("eval.report_file=ref_test_hoz22"), log=print)
+        Evaluator(_reference("eval.report_file=ref_test_hoz22", "train.env.target_set=mjolnir22"), log=print)
     message = str(error.value)
     assert "the report episodes (ref_test_hoz22.json.gz) do not fit the a3c runs" in message
     assert "of 12 episodes have targets the run never trained for" in message and "bathroom: " in message
     # From the command line: refused before any run is trained or any folder made.
     runs, reports = tmp_path / "runs", tmp_path / "reports"
     argv = ["reproduce", "table1", "--budget", "smoke", "--protocol", "reference", "--reports", str(reports)]
-    sets = ["--set", f"runs_dir={runs}", "--set", "eval.select_file=ref_val_hoz22"]
-    assert main([*argv, *sets]) != 0
-    assert "the selection episodes (ref_val_hoz22.json.gz) do not fit" in capsys.readouterr().err
+    sets = ["--set", f"runs_dir={runs}", "--set", "eval.select_file=ref_val_mjolnir22"]
+    assert main([*argv, *sets]) != 0  # the protocol's default runs (hoz22) on MJOLNIR's episodes
+    error = capsys.readouterr().err
+    assert "the selection episodes (ref_val_mjolnir22.json.gz) do not fit" in error
+    assert "--set train.env.target_set=mjolnir22" in error
     assert not runs.exists() and not reports.exists()
 
 

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from mapless.cli.common import add_command
+from mapless.config import read_mapping
 from mapless.episodes.protocols import PROTOCOLS
 
 
@@ -37,8 +38,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--protocol",
         choices=tuple(PROTOCOLS),
-        help="train for an evaluation protocol's success rule: reference = within 1.5 m, as the SAVN/MJOLNIR "
-        "data (--set env.sim.visibility_distance=1.5); standard and paper = 1.0 m, the default",
+        help="train for an evaluation protocol's success rule and episodes' classes: reference = within "
+        "1.5 m, as the SAVN/MJOLNIR data (--set env.sim.visibility_distance=1.5), on the published HOZ "
+        "episodes' classes where CONFIG.yaml and --set name no env.target_set (hoz22); standard and "
+        "paper = 1.0 m, the default",
     )
 
 
@@ -51,7 +54,7 @@ def _train(args: argparse.Namespace) -> int:
 
     overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
     if args.protocol:
-        overrides.append(f"env.sim.visibility_distance={PROTOCOLS[args.protocol].visibility_distance}")
+        overrides += protocol_overrides(args.protocol, args.config, overrides)
     if args.resume is not None:
         if args.config is not None:
             raise ConfigError("give either CONFIG.yaml or --resume RUN_DIR, not both")
@@ -75,3 +78,12 @@ def _train(args: argparse.Namespace) -> int:
         )
         return 130  # the shell's code for a run ended by SIGINT
     return 0
+
+
+def protocol_overrides(protocol: str, config: Path | None, overrides: list[str]) -> list[str]:
+    """The ``--set`` overrides that train for an evaluation protocol: its success rule, and its
+    episodes' classes (``Protocol.target_set``) where neither the config file nor ``overrides`` name
+    a target set."""
+    stated = config is not None and "target_set" in (read_mapping(config).get("env") or {})
+    stated = stated or any(o.split("=", 1)[0].strip() == "env.target_set" for o in overrides)
+    return PROTOCOLS[protocol].train_overrides(target_set=not stated)

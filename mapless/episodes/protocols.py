@@ -9,16 +9,18 @@
   1.5 m, AI2-THOR's default ``visibilityDistance``, which the references' offline data follow;
   select on the odd floor plans x21-x29 (``ref_val``), report once on the even ones x22-x30
   (``ref_test``), the split of the published pickles; a start may already see the target, as in
-  the published files. Its sets are those of the model's training target set
-  (mapless.episodes.evalsets.set_path): ``mjolnir22`` (the paper's targets, the default) is scored
-  on the project's sampled sets ``ref_val_mjolnir22`` / ``ref_test_mjolnir22``; ``hoz22`` on the
-  published episodes themselves, the HOZ line's 22-class val and test files (shipped in the package
-  and mapped onto the built-in scenes as ``ref_val_hoz22`` / ``ref_test_hoz22``, docs/interop.md),
-  whose classes it trains on. A set of targets the run never trained for is refused by an
-  experiment and flagged by ``mapless eval``.
+  the published files. Its sets are the published episodes themselves by default: the HOZ line's
+  22-class val and test files (shipped in the package and mapped onto the built-in scenes as
+  ``ref_val_hoz22`` / ``ref_test_hoz22``, docs/interop.md), so its runs train on their classes,
+  target set ``hoz22``. A run trained on another target set is scored on that set's sets
+  (mapless.episodes.evalsets.set_path): ``mjolnir22`` (the paper's targets) on the project's
+  sampled sets ``ref_val_mjolnir22`` / ``ref_test_mjolnir22``. A set of targets the run never
+  trained for is refused by an experiment and flagged by ``mapless eval``.
 
 Training is the same under every protocol (x01-x20) except for the success rule, which also decides
-the reward and ``Done``: a run trained for the reference protocol uses ``visibility_distance`` 1.5.
+the reward and ``Done``, and the default target set (``Protocol.target_set``, the classes of the
+protocol's episodes): a run trained for the reference protocol uses ``visibility_distance`` 1.5 and,
+unless its configuration names another, the published episodes' classes.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ class Protocol:
     equal when selection and report share their episodes. visible_starts: the protocol's evaluation
     sets may start with the target already in view. No protocol's sampled sets start on a pose-graph
     island (``SceneData.usable_poses``). Which set of a split is read follows the model's training
-    target set (mapless.episodes.evalsets.set_path)."""
+    target set (mapless.episodes.evalsets.set_path); target_set: the training target set of a run
+    trained for this protocol whose configuration names none, that of the protocol's own sets."""
 
     name: str
     select_split: str
@@ -44,10 +47,17 @@ class Protocol:
     visibility_distance: float
     visible_starts: bool
     label: str
+    target_set: str = "mjolnir22"
 
     def sim(self, config: SimConfig) -> SimConfig:
         """``config`` with this protocol's success rule."""
         return dataclasses.replace(config, visibility_distance=self.visibility_distance)
+
+    def train_overrides(self, target_set: bool = True) -> list[str]:
+        """TrainConfig overrides (``KEY=VALUE``) that train a run for this protocol: its success rule
+        and, with ``target_set``, its episodes' classes (leave them out where the run names its own)."""
+        rule = [f"env.sim.visibility_distance={self.visibility_distance}"]
+        return rule + ([f"env.target_set={self.target_set}"] if target_set else [])
 
 
 PROTOCOLS: dict[str, Protocol] = {
@@ -63,7 +73,7 @@ PROTOCOLS: dict[str, Protocol] = {
     "reference": Protocol(
         "reference", "ref_val", "ref_test", 1.5, True,
         "REFERENCE PROTOCOL (the SAVN/MJOLNIR/HOZ data's): success within 1.5 m, selected on val (odd "
-        "x21-x29), reported once on test (even x22-x30), starts may see the target",
+        "x21-x29), reported once on test (even x22-x30), starts may see the target", "hoz22",
     ),
 }  # fmt: skip
 

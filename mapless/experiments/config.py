@@ -34,8 +34,9 @@ class ExperimentEval:
     protocol: ``standard`` (select on val, report on test), ``paper`` (select and report on x21-x30)
         or ``reference`` (success within 1.5 m, select on odd x21-x29, report on even x22-x30; its
         runs train under the 1.5 m rule too); mapless.episodes.protocols. Every protocol reads the
-        sets of the runs' training target set (``train.env.target_set``): under ``reference``,
-        ``mjolnir22``'s sampled sets or ``hoz22``'s published HOZ episodes.
+        sets of the runs' training target set (``train.env.target_set``, by default the protocol's:
+        ``hoz22`` under ``reference``, whose sets are the published HOZ episodes; ``mjolnir22``,
+        the paper's targets, whose sets are sampled here, under the others).
     per_room: the first N episodes per room type of the fixed sets (250 = all of the sampled ones;
         of the published HOZ sets of ``hoz22``, up to 1,000 per room type, the first 250 as HOZ
         evaluates).
@@ -278,21 +279,31 @@ def load_experiment(
 
 def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
     """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and
-    seed, and the success rule of the evaluation protocol (a run learns the rule it is scored by)."""
+    seed, and the success rule of the evaluation protocol (a run learns the rule it is scored by), and
+    the protocol's target set where none of those names one (a run learns the classes of the
+    episodes it is scored on: the reference protocol's are the published episodes', ``hoz22``)."""
     from mapless.train.config import TrainConfig
     from mapless.train.recipes import with_recipe
 
     data = json.loads(json.dumps(config.train))
     for layer in (config.per_model.get(model, {}), extra or {}):
         data = merge_mappings(data, layer)
-    visibility = get_protocol(config.eval.protocol).visibility_distance
+    protocol = get_protocol(config.eval.protocol)
+    visibility = protocol.visibility_distance
     stated = data.get("env", {}).get("sim", {}).get("visibility_distance", visibility)
     if stated != visibility:
         raise ConfigError(
             f"config key 'train.env.sim.visibility_distance': {stated} contradicts the {config.eval.protocol} "
             f"protocol's success rule ({visibility} m); leave it out, the protocol sets it"
         )
+    target_set = data.get("env", {}).get("target_set", protocol.target_set)
     data = apply_overrides(
-        data, [f"model.name={model}", f"seed={seed}", f"env.sim.visibility_distance={visibility}"]
+        data,
+        [
+            f"model.name={model}",
+            f"seed={seed}",
+            f"env.sim.visibility_distance={visibility}",
+            f"env.target_set={target_set}",
+        ],
     )
     return from_dict(TrainConfig, with_recipe(data))
