@@ -112,6 +112,8 @@ def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path
 def test_every_model_of_a_figure_gets_its_own_style_past_the_palette():
     styles = [model_style(i) for i in range(2 * len(MODEL_COLOURS))]
     assert len(set(styles)) == len(styles)
+    # The medium ablation's 13 lines (cvmeta and 12 rows) each get a colour of their own.
+    assert len({model_style(i)[0] for i in range(13)}) == 13
 
 
 def test_paper_protocol_is_labelled():

@@ -14,6 +14,8 @@ from mapless.evaluate.metrics import EpisodeResult, exploration_curve
 from mapless.sim.config import SimConfig
 from mapless.sim.library import SceneLibrary
 
+#: Distinct colours for up to 14 lines (the medium ablation has 13 rows with its cvmeta), so that no
+#: two rows of a figure are told apart by line style alone; past them, styles change.
 MODEL_COLOURS = (
     "tab:red",
     "tab:blue",
@@ -23,6 +25,12 @@ MODEL_COLOURS = (
     "tab:brown",
     "tab:pink",
     "tab:olive",
+    "tab:cyan",
+    "tab:gray",
+    "black",
+    "gold",
+    "navy",
+    "lime",
 )
 
 
