@@ -5,9 +5,13 @@ that were recorded in tests/data/policy_step_golden.pt before the step moved int
 Variants: the plain ``forward``; acting one step through a rollout's LSTM weight products (fp32, and
 bf16 in train mode with dropout); replaying a recorded segment time-batched; the meta-learning
 inner loop with per-episode fast weights (second order, first order, bf16) and test-time adaptation;
-the value alone. Everything runs in float64 except the bf16 variants, so a rounding-level change
-shows up at 1e-12; the bf16 ones round intermediates to 8 bits, so another CPU's kernels (another
-summation order) may move them by more.
+the value alone. Everything runs in float64 except the bf16 variants. On the machine that recorded,
+a rounding-level change shows up at 1e-12 (``MAPLESS_GOLDEN_EXACT=1``: bit for bit). Another CPU moves
+the float64 values too: on an AMD EPYC (2026-12-07) by up to 3.3e-5 of their size, though never by
+more than 1e-4 of it plus 2.2e-15, most likely through what a model computes in float32 before
+``.to(float64)``. So the default float64 tolerance is 2e-4 of the value (plus 1e-9): a changed
+operation moves these values by far more. The bf16 ones round intermediates to 8 bits, so another
+CPU's kernels (another summation order) may move them by more.
 
 Re-record only on purpose (a change of arithmetic): ``python tests/test_policy_step.py --record``.
 """
@@ -43,7 +47,7 @@ LENGTHS = (5, 3, 2)  # whole episodes of the fast-weight runs end at different s
 #: (rtol, atol) per dtype of the recorded values
 #: (bf16 rounds intermediates to 8 bits: another CPU's kernels may move them by far more than fp64's).
 #: ``MAPLESS_GOLDEN_EXACT=1`` asks for bit-for-bit equality (on the machine that recorded).
-TOLERANCE = {torch.float64: (1e-10, 1e-12), torch.float32: (2e-2, 2e-3)}
+TOLERANCE = {torch.float64: (2e-4, 1e-9), torch.float32: (2e-2, 2e-3)}
 EXACT = os.environ.get("MAPLESS_GOLDEN_EXACT") == "1"
 
 
