@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from mapless.cli.common import add_command
-from mapless.config import read_mapping
+from mapless.config import apply_overrides, read_mapping
 from mapless.episodes.protocols import PROTOCOLS
 
 
@@ -84,6 +84,5 @@ def protocol_overrides(protocol: str, config: Path | None, overrides: list[str])
     """The ``--set`` overrides that train for an evaluation protocol: its success rule, and its
     episodes' classes (``Protocol.target_set``) where neither the config file nor ``overrides`` name
     a target set."""
-    stated = config is not None and "target_set" in (read_mapping(config).get("env") or {})
-    stated = stated or any(o.split("=", 1)[0].strip() == "env.target_set" for o in overrides)
-    return PROTOCOLS[protocol].train_overrides(target_set=not stated)
+    data = apply_overrides(read_mapping(config) if config is not None else {}, overrides)
+    return PROTOCOLS[protocol].train_overrides(target_set="target_set" not in (data.get("env") or {}))
