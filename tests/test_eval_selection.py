@@ -27,6 +27,7 @@ from mapless.evaluate.selection import (
     load_episodes,
     select_and_report,
 )
+from mapless.experiments.pipelines import training_curve
 from mapless.experiments.render import mean_near, training_curves
 from mapless.scenes.catalogue import room_type_of, split_of
 from mapless.sim.config import SimConfig
@@ -79,19 +80,45 @@ def test_the_training_table_compares_runs_at_the_frames_every_run_reached(tmp_pa
 
     slow = curve([100, 200, 300, 400], [0.1, 0.2, 0.3, 0.4], [1.0, 0.9, 0.8, 0.7])
     fast = curve([200, 400, 600, 800], [0.2, 0.4, 0.6, 0.8], [1.0, 0.5, 0.4, 0.3])
-    records = [{"model": "slow", "runs": [{"training": slow}]}, {"model": "fast", "runs": [{"training": fast}]},
-               {"model": "random", "runs": [{}]}]  # fmt: skip
+    # two seeds of slow trained by PPO; fast (say, the references' A3C) logged no update statistics
+    slow_seed2 = {**slow, "updates": {"approx_kl": 0.004, "clip_fraction": 0.05, "explained_variance": 0.5}}
+    slow = {**slow, "updates": {"approx_kl": 0.002, "clip_fraction": 0.02, "explained_variance": 0.7}}
+    records = [{"model": "slow", "runs": [{"training": slow}, {"training": slow_seed2}]},
+               {"model": "fast", "runs": [{"training": fast}]}, {"model": "random", "runs": [{}]}]  # fmt: skip
     lines = training_curves(records, tmp_path / "t.png")
     assert (tmp_path / "t.png").stat().st_size > 10_000
     rows = [line for line in "\n".join(lines).splitlines() if line.startswith(("| slow", "| fast"))]
     # 400 frames are the fewest any run trained: quarter 100 (fast: nearest record, 200), half 200, all 400
     assert rows[0] == "| slow | 400 | 10.0 | 20.0 | 40.0 | 40.0 | 0.70 | 0.70 |"
     assert rows[1] == "| fast | 800 | 20.0 | 20.0 | 40.0 | 80.0 | 0.50 | 0.30 |"
+    assert rows[2:] == ["| slow | 0.0030 | 3.5 | 0.60 |"]  # the update table: the seeds' mean, slow only
     assert mean_near(
         curve([95, 100, 104, 200], [0.1, 0.2, 0.6, 0.9], [0, 0, 0, 0]), "success", 100
     ) == pytest.approx(0.3)
     assert training_curves([{"model": "random", "runs": [{}]}], tmp_path / "none.png") == []
     assert not (tmp_path / "none.png").exists()
+
+
+def test_training_curve_keeps_the_means_of_ppo_update_statistics_where_ppo_logged_them(tmp_path):
+    def record(frames, **ppo):
+        return {"frames": frames, "perf/frames_per_s": 100.0, "charts/success": 0.5, "losses/entropy": 1.0,
+                **{f"ppo/{key}": value for key, value in ppo.items()}}  # fmt: skip
+
+    ppo_run, a3c_run = tmp_path / "ppo", tmp_path / "a3c"
+    ppo_run.mkdir()
+    a3c_run.mkdir()
+    (ppo_run / "metrics.jsonl").write_text(
+        json.dumps(record(100, approx_kl=0.01, clip_fraction=0.1, explained_variance=0.2)) + "\n"
+        + json.dumps(record(200, approx_kl=0.03, clip_fraction=0.3, explained_variance=0.6)) + "\n"
+    )  # fmt: skip
+    (a3c_run / "metrics.jsonl").write_text(json.dumps(record(100)) + "\n" + json.dumps(record(200)) + "\n")
+    with_updates = training_curve(ppo_run)
+    assert with_updates["frames"] == [100, 200] and with_updates["success"] == [0.5, 0.5]
+    assert with_updates["updates"] == pytest.approx(
+        {"approx_kl": 0.02, "clip_fraction": 0.2, "explained_variance": 0.4}
+    )
+    without = training_curve(a3c_run)
+    assert without["frames"] == [100, 200] and "updates" not in without
 
 
 def test_validation_figure_draws_only_candidates_that_know_their_frames(tmp_path):

@@ -11,6 +11,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from mapless.checkpoint import training_log
 from mapless.evaluate.metrics import compared_metrics, same_actions
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
@@ -78,15 +80,32 @@ def _model_results(
 TRAINING_CURVE = {"success": "charts/success", "entropy": "losses/entropy"}
 
 
-def training_curve(run_dir: Path) -> dict[str, list]:
+#: PPO's statistics of its updates (mapless.train.ppo), logged by the runs PPO trains: how far an
+#: update moved the policy from the one that acted (the approximate KL), the share of probability
+#: ratios clipped, and the share of the returns' variance the critic explains.
+UPDATE_STATS = {
+    "approx_kl": "ppo/approx_kl",
+    "clip_fraction": "ppo/clip_fraction",
+    "explained_variance": "ppo/explained_variance",
+}
+
+
+def training_curve(run_dir: Path) -> dict:
     """A run's :data:`TRAINING_CURVE` at every record of its training log, with its frames and
-    training minutes, as a report keeps it (rounded: it is drawn, not computed on)."""
+    training minutes, as a report keeps it (rounded: it is drawn, not computed on); and, where PPO
+    trained it, ``updates``: the mean of each of :data:`UPDATE_STATS` over its records."""
     log = training_log(run_dir, tuple(TRAINING_CURVE.values()))
-    return {
+    curve: dict = {
         "frames": log["frames"],
         "minutes": [round(s / 60, 3) for s in log["seconds"]],
         **{name: [round(v, 4) for v in log[key]] for name, key in TRAINING_CURVE.items()},
     }
+    updates = training_log(run_dir, tuple(UPDATE_STATS.values()))
+    if updates["frames"]:
+        curve["updates"] = {
+            name: round(float(np.mean(updates[key])), 5) for name, key in UPDATE_STATS.items()
+        }
+    return curve
 
 
 def _setting(config: ExperimentConfig, ev: Evaluator) -> Setting:

@@ -178,6 +178,29 @@ def training_curves(records: list[dict], path: Path) -> list[str]:
         "",
         markdown(header, rows),
         "",
+        *_update_table(curves),
+    ]
+
+
+def _update_table(curves: Mapping[str, Sequence[Mapping]]) -> list[str]:
+    """How PPO's updates went for each model whose runs PPO trained (their ``updates``): whether
+    one moves its policy less per batch of experience, or fits its critic worse."""
+    rows = []
+    for model, per_seed in curves.items():
+        stats = [curve["updates"] for curve in per_seed if "updates" in curve]
+        if stats:
+            mean = {key: float(np.mean([s[key] for s in stats])) for key in stats[0]}
+            rows.append([model, f"{mean['approx_kl']:.4f}", f"{100 * mean['clip_fraction']:.1f}",
+                         f"{mean['explained_variance']:.2f}"])  # fmt: skip
+    if not rows:
+        return []
+    return [
+        "How PPO's updates went, averaged over each run's log records, then its seeds: the approximate "
+        "KL from the policy that acted to the updated one (how far an update moves it), the share of "
+        "probability ratios clipped, in %, and the share of the returns' variance the critic explains:",
+        "",
+        markdown(["model", "approx. KL per update", "clipped", "explained variance"], rows),
+        "",
     ]
 
 
