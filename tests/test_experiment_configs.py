@@ -62,6 +62,17 @@ def test_every_experiment_and_budget_resolves_as_before(experiment: str, budget:
     assert to_dict(read_experiment(config_path(experiment, budget))) == RESOLVED[f"{experiment}_{budget}"]
 
 
+@pytest.mark.parametrize("experiment, budget", [(e, b) for e, b in SHIPPED if b != "full"])
+def test_every_experiment_below_the_full_budget_builds_every_runs_config(
+    experiment: str, budget: str
+) -> None:
+    # load_experiment builds every model's and ablation row's TrainConfig, as `reproduce` does before
+    # any work (the full budget's device: cuda needs a GPU); a row this budget's trainer cannot run
+    # would stop `mapless reproduce EXPERIMENT --budget BUDGET` before it starts.
+    config = load_experiment(experiment, budget)
+    assert config.models and config.budget == budget
+
+
 def test_figures_share_table1s_runs_folder_and_training() -> None:
     table1, figure3 = load_experiment("table1", "small"), load_experiment("figure3", "small")
     for key in ("runs_dir", "train", "per_model", "eval", "seeds"):
