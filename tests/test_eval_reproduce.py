@@ -543,10 +543,10 @@ def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
     small, medium = load_experiment("ablation", "small"), load_experiment("ablation", "medium")
     assert medium.ablations == small.ablations and medium.budget == "medium"
     assert medium.train["max_seconds"] == 3600 and small.train["max_seconds"] == 900
-    # Two seeds of the focus model and of rows d, f, j, k, l, n, o, p and q, one of the seven rows
+    # Two seeds of the focus model and of rows d, f, j, k, l, n, o, p, q and r, one of the seven rows
     # with `seeds: 1`; row a only evaluates the focus model's runs.
-    assert planned_runs(small) == {"cvmeta": 2 * 10 + 7}
-    assert planned_runs(load_experiment("ablation", "small", seeds=3)) == {"cvmeta": 3 * 10 + 7}
+    assert planned_runs(small) == {"cvmeta": 2 * 11 + 7}
+    assert planned_runs(load_experiment("ablation", "small", seeds=3)) == {"cvmeta": 3 * 11 + 7}
 
 
 def test_selection_may_read_a_subset_while_the_report_reads_every_episode(workspace):
