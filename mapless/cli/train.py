@@ -85,4 +85,4 @@ def protocol_overrides(protocol: str, config: Path | None, overrides: list[str])
     episodes' classes (``Protocol.target_set``) where neither the config file nor ``overrides`` name
     a target set."""
     data = apply_overrides(read_mapping(config) if config is not None else {}, overrides)
-    return PROTOCOLS[protocol].train_overrides(target_set="target_set" not in (data.get("env") or {}))
+    return PROTOCOLS[protocol].train_overrides(data)

@@ -26,6 +26,7 @@ unless its configuration names another, the published episodes' classes.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from mapless.errors import UnknownNameError
@@ -53,11 +54,12 @@ class Protocol:
         """``config`` with this protocol's success rule."""
         return dataclasses.replace(config, visibility_distance=self.visibility_distance)
 
-    def train_overrides(self, target_set: bool = True) -> list[str]:
+    def train_overrides(self, config: Mapping | None = None) -> list[str]:
         """TrainConfig overrides (``KEY=VALUE``) that train a run for this protocol: its success rule
-        and, with ``target_set``, its episodes' classes (leave them out where the run names its own)."""
+        and its episodes' classes, unless the TrainConfig mapping ``config`` names a target set."""
         rule = [f"env.sim.visibility_distance={self.visibility_distance}"]
-        return rule + ([f"env.target_set={self.target_set}"] if target_set else [])
+        named = "target_set" in ((config or {}).get("env") or {})
+        return rule + ([] if named else [f"env.target_set={self.target_set}"])
 
 
 PROTOCOLS: dict[str, Protocol] = {

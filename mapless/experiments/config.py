@@ -296,8 +296,5 @@ def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | 
             f"config key 'train.env.sim.visibility_distance': {stated} contradicts the {config.eval.protocol} "
             f"protocol's success rule ({visibility} m); leave it out, the protocol sets it"
         )
-    named = "target_set" in data.get("env", {})
-    data = apply_overrides(
-        data, [f"model.name={model}", f"seed={seed}", *protocol.train_overrides(target_set=not named)]
-    )
+    data = apply_overrides(data, [f"model.name={model}", f"seed={seed}", *protocol.train_overrides(data)])
     return from_dict(TrainConfig, with_recipe(data))
