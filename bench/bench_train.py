@@ -12,7 +12,7 @@ Memory is the peak resident set of the trainer process, plus the largest async w
 
 Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``: bfloat16 encoders
 and LSTM products). A batched mode with ``@N`` (e.g. ``batched-bf16@2``) runs N data-parallel ranks
-under ``torchrun`` (docs/training.md), each with ``threads / N`` threads and its own B episodes: on
+under ``torchrun`` (docs/guide/training.md), each with ``threads / N`` threads and its own B episodes: on
 this 2-core machine two 1-thread ranks use the cores better than one 2-thread process. The ratio is
 the fastest batched mode over async.
 

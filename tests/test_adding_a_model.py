@@ -1,4 +1,4 @@
-"""The recipe of docs/model.md, "Adding a model": a minimal model registered by name trains for one
+"""The recipe of docs/guide/models.md, "Adding a model": a minimal model registered by name trains for one
 PPO update and is evaluated, through the same code as every shipped model."""
 
 from __future__ import annotations

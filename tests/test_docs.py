@@ -14,7 +14,7 @@ MACHINE_PATH = re.compile(r"(?<![\w.~-])/(?:work|home|root|Users|mnt|scratch|dat
 
 
 def test_the_docs_name_no_folder_of_the_machine_they_were_written_on() -> None:
-    pages = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
     assert len(pages) > 10
     found = [
         f"{page.relative_to(REPO)}:{number}: {match}"
@@ -26,8 +26,8 @@ def test_the_docs_name_no_folder_of_the_machine_they_were_written_on() -> None:
 
 
 def test_every_promise_of_the_guarantees_names_tests_that_exist() -> None:
-    """docs/guarantees.md lists each promise beside the tests that enforce it (issue 45)."""
-    text = (REPO / "docs" / "guarantees.md").read_text()
+    """docs/reference/guarantees.md lists each promise beside the tests that enforce it (issue 45)."""
+    text = (REPO / "docs" / "reference" / "guarantees.md").read_text()
     promises = re.findall(r"(?ms)^- .*?(?=^- |^\n|^## |\Z)", text)
     assert len(promises) > 30
     untested = [p.splitlines()[0] for p in promises if "tests/" not in p]
@@ -51,7 +51,7 @@ def test_every_cited_bench_script_exists_or_its_citation_says_where_it_went() ->
     name a commit that has it (``git show COMMIT:bench/NAME``), so the citation never dangles."""
     pages = [
         REPO / "README.md",
-        *sorted((REPO / "docs").glob("*.md")),
+        *sorted((REPO / "docs").rglob("*.md")),
         *sorted((REPO / "mapless").rglob("*.py")),
         *sorted((REPO / "bench").iterdir()),
         *sorted((REPO / "experiments").rglob("*.yaml")),
@@ -68,7 +68,7 @@ def test_every_cited_bench_script_exists_or_its_citation_says_where_it_went() ->
             else:
                 dangling.append(f"{page.relative_to(REPO)}: bench/{name}")
     assert not dangling, dangling
-    assert recovered  # the removed studies are cited (docs/benchmarks.md lists them all)
+    assert recovered  # the removed studies are cited (docs/results/speed.md lists them all)
     if (REPO / ".git").exists() and shutil.which("git"):
         for commit, name in sorted(recovered):
             found = subprocess.run(

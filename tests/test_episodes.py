@@ -37,7 +37,7 @@ def test_builtin_sets_match_the_protocol(split):  # the reference sets: tests/te
     assert all(e.start[3] == 0 and e.optimal_length >= 2 for e in episodes)
 
 
-#: The evaluation floor plans (x21-x30) whose pose graph has an island (docs/simulator.md).
+#: The evaluation floor plans (x21-x30) whose pose graph has an island (docs/guide/simulator.md).
 ISLAND_SCENES = ("FloorPlan227", "FloorPlan326", "FloorPlan329", "FloorPlan427", "FloorPlan428")
 
 

@@ -1,6 +1,6 @@
 """The import map, read from the source (nothing is imported): mapless/ is a stack of layers along
 the data flow (scene -> observation -> agent -> trainer/evaluator -> report) with no circle among
-its modules or packages (docs/code-map.md); scenes/ is a stack of modules each importing only those
+its modules or packages (docs/reference/architecture.md); scenes/ is a stack of modules each importing only those
 below it, at module level; and the action set is declared once, below both the simulator and the
 models (issue 44, point 5)."""
 
@@ -10,7 +10,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mapless"
-#: mapless/ bottom to top (docs/code-map.md): a module imports only from its own layer or those
+#: mapless/ bottom to top (docs/reference/architecture.md): a module imports only from its own layer or those
 #: below, function-level imports included.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("mapless", "errors", "files", "config", "actions", "provenance", "safe_pickle", "data"),

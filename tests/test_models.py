@@ -81,7 +81,7 @@ def test_reference_sized_models_reproduce_reference_counts_and_keys(name):
     state = model.state_dict()
     for key, shape in REFERENCE_SHAPES[name].items():
         assert tuple(state[key].shape) == shape, key
-    # Without the dead modules only the documented ones go (docs/model.md).
+    # Without the dead modules only the documented ones go (docs/guide/models.md).
     lean = build_model(name, feature_channels=512)
     dead = {
         "a3c": 37_638,

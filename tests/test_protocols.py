@@ -181,7 +181,7 @@ def test_shipped_reference_sets_follow_the_protocol(split):
 
 # ------------------------------------------------------------- the published episodes (HOZ, 22 classes)
 
-#: Mapped episodes per room type of the shipped published sets (the mapping report, docs/interop.md).
+#: Mapped episodes per room type of the shipped published sets (the mapping report, docs/guide/interop.md).
 PUBLISHED_MAPPED = {
     "ref_val": {"kitchen": 864, "living_room": 927, "bedroom": 937, "bathroom": 996},
     "ref_test": {"kitchen": 922, "living_room": 1000, "bedroom": 959, "bathroom": 861},

@@ -87,7 +87,7 @@ def test_hoz22_targets_add_their_parent_edges_to_hoz22_runs_graphs_only():
     pan, burner = names.index("Pan"), names.index("StoveBurner")
     assert parent_weights("kitchen", "Pan")[burner] > 0
     # ... and a hoz22 run's graph links them, while every other run keeps the graph it always had:
-    # 911 non-zeros (docs/model.md), Pan and StoveBurner unlinked by VG's caption counts.
+    # 911 non-zeros (docs/guide/models.md), Pan and StoveBurner unlinked by VG's caption counts.
     shared = hierarchical_adjacency() > 0
     assert int(shared.sum()) == 911 and not shared[pan, burner]
     assert (hierarchical_adjacency(target_set="mjolnir22") == hierarchical_adjacency()).all()

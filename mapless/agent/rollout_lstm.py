@@ -88,7 +88,7 @@ class RolloutLstm:
         self.buffers = buffers if buffers is not None else BufferPool()
         # Every product reads the weight along the dimension it reduces (``rows @ Mᵀ``, M row-major):
         # for the few-row products of a rollout that is up to 2x faster than reading across it
-        # (docs/training.md, "The LSTM weight read along the reduced dimension"). So the forward
+        # (docs/guide/training.md, "The LSTM weight read along the reduced dimension"). So the forward
         # products (input space -> gate space) read a
         # gate-major copy [4H, D + H] and the transposed ones (an inner step's backward) an
         # input-major copy [D + H, 4H].
@@ -179,7 +179,7 @@ class RolloutLstm:
     def _columns(self, rows: Tensor) -> Tensor:
         """``rows.T``, the weight gradient's left operand; in bfloat16 a contiguous copy in the pool,
         because the product with a transposed view ran at half the speed (float32: within 15 %, less
-        than the copy costs; docs/training.md, "The LSTM weight read along the reduced dimension")."""
+        than the copy costs; docs/guide/training.md, "The LSTM weight read along the reduced dimension")."""
         if rows.dtype != torch.bfloat16:
             return rows.T
         count, width = rows.shape

@@ -48,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--layouts",
         help="SOURCE:PER_SCENE: a layout-shift set, each episode on one of its floor plan's first PER_SCENE "
         "variants from SOURCE (gen: generated arrangements; rearrange2023; or an arrangement file in the "
-        "rearrangement dataset's format), e.g. --splits test --layouts gen:3 (docs/simulator.md)",
+        "rearrangement dataset's format), e.g. --splits test --layouts gen:3 (docs/guide/simulator.md)",
     )
 
     show = add_command(

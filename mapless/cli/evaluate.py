@@ -47,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="run folders: evaluate every checkpoint on the protocol's val set and report the best by SR "
                          "(ties SPL) on --split (--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
     ev.add_argument(
-        "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/interop.md)"
+        "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/guide/interop.md)"
     )
     ev.add_argument("--workers", type=positive_int, default=2)
     ev.add_argument("--batch-size", type=positive_int, default=32)
@@ -128,7 +128,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=("local", "slurm"),
         default="local",
         help="local: this machine; slurm: each run a Slurm job through submitit (pip install -c "
-        'constraints.txt -e ".[cluster]"; docs/training.md, "On a cluster")',
+        'constraints.txt -e ".[cluster]"; docs/guide/training.md, "On a cluster")',
     )
     slurm = rep.add_argument_group("Slurm (--launcher slurm)")
     slurm.add_argument("--partition", help="the jobs' partition (default: the cluster's)")

@@ -64,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         sub,
         "variants",
         _variants,
-        help='facts about an arrangement source against the default layouts (docs/simulator.md, "Scene variants")',
+        help='facts about an arrangement source against the default layouts (docs/guide/simulator.md, "Scene variants")',
     )
     variants.add_argument(
         "source", nargs="?", default="rearrange2023", help="rearrange2023 or an arrangement file"

@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    """Train a model: recurrent PPO, or the references' batched or async A3C (docs/training.md).
+    """Train a model: recurrent PPO, or the references' batched or async A3C (docs/guide/training.md).
     Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
     from mapless.train.recipes import load_train_config

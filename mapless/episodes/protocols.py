@@ -11,7 +11,7 @@
   (``ref_test``), the split of the published pickles; a start may already see the target, as in
   the published files. Its sets are the published episodes themselves by default: the HOZ line's
   22-class val and test files (shipped in the package and mapped onto the built-in scenes as
-  ``ref_val_hoz22`` / ``ref_test_hoz22``, docs/interop.md), so its runs train on their classes,
+  ``ref_val_hoz22`` / ``ref_test_hoz22``, docs/guide/interop.md), so its runs train on their classes,
   target set ``hoz22``. A run trained on another target set is scored on that set's sets
   (mapless.episodes.evalsets.set_path): ``mjolnir22`` (the paper's targets) on the project's
   sampled sets ``ref_val_mjolnir22`` / ``ref_test_mjolnir22``. A set of targets the run never

@@ -1,6 +1,6 @@
 """Per-episode records and the metrics of the paper and of the SAVN/MJOLNIR evaluation code.
 
-Conventions (docs/evaluation.md):
+Conventions (docs/guide/evaluation.md):
 
 * ``length`` L counts every action the agent took, failed moves and the final ``Done`` included
   (SAVN's ``eps_len``); ``optimal_length`` L* is the stored shortest-path length including ``Done``

@@ -150,7 +150,7 @@ def _import(path: str) -> Callable[..., Any]:
 
 
 def target_fields(category_set: str) -> TargetFields:
-    """Observation fields of the target: the category set's GloVe vector (docs/observations.md)."""
+    """Observation fields of the target: the category set's GloVe vector (docs/guide/simulator.md, "Observations")."""
     return TargetFields(category_set)
 
 

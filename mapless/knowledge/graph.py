@@ -3,7 +3,7 @@
 * ``vg``: MJOLNIR's prior, ``A[i, j] = 1`` iff the Visual-Genome relation count between categories i
   and j is >= 5 (``kg_prep/make_adjacency.py``), directed as shipped, self-loops only where VG had them
   (614 edges, 54 self-loops, 22 empty rows for ``mjolnir101``). Used by ``mjolnir_o/_r`` (faithful) and
-  by ``sp``/``gve`` (their own 83-node SAVN graph does not match the category set; docs/model.md).
+  by ``sp``/``gve`` (their own 83-node SAVN graph does not match the category set; docs/guide/models.md).
 * ``hierarchical``: the paper's "purified" graph augmented with parent edges:
 
   1. symmetrise the VG graph (VG's direction is the grammatical subject of a caption, not a property
@@ -98,7 +98,7 @@ def hierarchical_adjacency(
     for the targets of :data:`GRAPH_TARGET_SETS` and of ``target_set`` (a run's ``env.target_set``).
 
     Leaving a room type out of ``rooms`` (the Table 3 ablation) removes only the edges its hierarchy
-    alone adds: pairs the VG graph or another room type also links stay (docs/evaluation.md)."""
+    alone adds: pairs the VG graph or another room type also links stay (docs/guide/evaluation.md)."""
     from mapless.knowledge.parents import parent_lists
 
     for room in rooms:

@@ -14,7 +14,7 @@ living rooms. The lists are built by :func:`build_parent_lists` from two sources
 Each parent carries ``p``: the share of the target's training instances that lie on/in the parent or
 within ``NEAR_DISTANCE`` of one of its instances. ``p`` plays the role of MJOLNIR's child->parent
 probability in the reward. The built lists ship as ``mapless/data/priors/parents.json`` (a test checks
-they equal a rebuild) and are tabulated in docs/model.md.
+they equal a rebuild) and are tabulated in docs/guide/models.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Shared pieces of every navigation model: config, output type and base classes (the layers they are
 built from are :mod:`mapless.models.layers`).
 
-Models receive the observation dict of docs/observations.md, the recurrent state ``(h, c)`` and the
+Models receive the observation dict of docs/guide/simulator.md, "Observations", the recurrent state ``(h, c)`` and the
 previous step's policy (``[B, 6]``), and return :class:`ModelOutput`. Every computation is written
 with plain tensor ops on the module's own parameters (the LSTM step included), so
 ``torch.func.functional_call`` with any parameter dict, and ``torch.func.vmap`` over per-episode
@@ -38,7 +38,7 @@ from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
 from mapless.scenes.catalogue import ROOM_TYPES
 
-GRID = 7  # the 7x7 feature map of docs/observations.md (ResNet-18 conv5 size)
+GRID = 7  # the 7x7 feature map of docs/guide/simulator.md, "Observations" (ResNet-18 conv5 size)
 EMBED = 64  # SAVN's per-cell embedding width, reused by every model that follows its layout
 
 
@@ -84,7 +84,7 @@ class ModelConfig:
 
     name: registered model name (``mapless models list``).
     category_set: category set of the context vector / graph nodes (``mjolnir101`` or ``all_types``).
-    feature_channels: channels of ``obs["features"]``; None = category count + 3 (docs/observations.md);
+    feature_channels: channels of ``obs["features"]``; None = category count + 3 (docs/guide/simulator.md, "Observations");
         512 reproduces the references' ResNet-18 input sizes.
     hidden_size: LSTM width (512 in every reference).
     dropout: dropout rate (SAVN's ``--dropout_rate`` 0.25).
@@ -103,7 +103,7 @@ class ModelConfig:
         others: all).
     fusion_channels: output channels of cvmeta's pointwise fusion per category.
     semantic_map: cvmeta also reads the 7x7 semantic feature map that a3c reads (categories, floor,
-        walls, depth; docs/observations.md) through a 1x1 convolution to 16 channels, flattened into
+        walls, depth; docs/guide/simulator.md, "Observations") through a 1x1 convolution to 16 channels, flattened into
         its LSTM input. Not in the paper, whose model sees the scene only through context vectors
         and the graph (the cvmeta ablation's row e).
     context_distance: the context rows a model reads gain a column, the distance (m) to the
@@ -114,13 +114,13 @@ class ModelConfig:
         the frame beyond the success rule's 1.5 m (docs/learning.md).
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
-        that savn does not have (docs/training.md, "Why cvmeta trains slower than savn").
+        that savn does not have (docs/guide/training.md, "Why cvmeta trains slower than savn").
     target_context: the target descriptor also reads the target category's own context row
         ``[B, x_c, y_c, A_bbox]`` (cvmeta: ``ψ(g, C_g; u)``; a3c, sp, savn, gve, mjolnir_r: the GloVe
         embedding of SAVN's state embedding; spatt: the target query; mjolnir_o, which has no target
         descriptor: the row joins its LSTM input), so "the target is in view, there, this large" is
         one shared input instead of a rule learned per category from the CS column or the feature
-        map. Not in any of the papers; off reproduces them (docs/model.md, "Target context").
+        map. Not in any of the papers; off reproduces them (docs/guide/models.md, "Target context").
     reference_extras: also build the references' dead modules (``action_predict_linear``, SAVN's
         ``ll_key``/``ll_linear``, the TCN's unused ``ll_conv2``, MJOLNIR_R's frozen ResNet fc) so that
         parameter counts and state-dict keys match the originals. They never affect outputs.

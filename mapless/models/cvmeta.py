@@ -16,7 +16,7 @@ ReLU + dropout, is flattened (32 x 101 = 3232 by default, close to SAVN's 3136) 
 LSTMCell(., 512) (with ``model.semantic_map``, not in the paper, the 7x7 feature map's 1x1 embedding
 joins the LSTM input). The concatenation is never formed: the convolution is computed part by part, the
 tiled vectors' parts once per episode (:func:`~mapless.models.layers.pointwise_conv_of_parts`).
-Choices the paper leaves open are argued in docs/model.md.
+Choices the paper leaves open are argued in docs/guide/models.md.
 """
 
 from __future__ import annotations

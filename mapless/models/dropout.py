@@ -4,7 +4,7 @@
 ``[B, 64, 101]`` context descriptors of a B = 512 cvmeta rollout that is ~30 ms per step on one
 core, 4 % of a training update. The mask needs far fewer random bits: :class:`Dropout` keeps an
 element when 16 random bits exceed a threshold, and draws them as 64-bit words, four elements per
-draw (3.7x faster at the models' shapes; docs/training.md, "Dropout masks"). It works under
+draw (3.7x faster at the models' shapes; docs/guide/training.md, "Dropout masks"). It works under
 ``vmap`` with ``randomness="different"`` (the inner loop's per-episode encoders), and uses the
 default generator, so ``torch.manual_seed`` and the trainer's saved RNG state reproduce it.
 

@@ -1,5 +1,5 @@
 """Graph-prior baselines: ``sp`` (Scene Priors, Yang et al. 2018, as in SAVN's ``GCN``) and ``gve``
-(graph-based value estimation, Moghaddam et al.; reconstructed, see docs/model.md).
+(graph-based value estimation, Moghaddam et al.; reconstructed, see docs/guide/models.md).
 
 The graph branch follows SAVN's ``models/gcn.py``: node features ``[class embedding || word
 embedding]`` (512 + 512) through three propagation layers ``X <- ReLU(W (Â X))`` (1024 -> 1024 ->

@@ -141,7 +141,7 @@ def target_row(context: Tensor, target_index: Tensor) -> Tensor:
 def target_context_input(obs: dict[str, Tensor], layer: nn.Module, with_distance: bool = False) -> Tensor:
     """``model.target_context``'s term of a target descriptor: ``layer`` (4 -> the descriptor's width;
     5 ``with_distance``) of the target category's own context row, added to the descriptor's GloVe
-    term before its activation (docs/model.md, "Target context")."""
+    term before its activation (docs/guide/models.md, "Target context")."""
     context = observed_context(obs, with_distance)
     row = target_row(context, obs["target_index"])
     return layer(row.unsqueeze(-1)).squeeze(-1) if isinstance(layer, nn.Conv1d) else layer(row)

@@ -4,7 +4,7 @@ cvmeta's hierarchical GCN and MJOLNIR's object GCN take ``[in-view vector || nod
 features, so their output is a function of which categories are in view, and an agent sees the same
 set of categories again and again: it turns on the spot, steps back and forth, and starts episodes
 in the same rooms. In a 32-episode training rollout of cvmeta about one row in three is new, and an
-evaluation sees even fewer (docs/training.md and docs/evaluation.md give the measured shares and
+evaluation sees even fewer (docs/guide/training.md and docs/guide/evaluation.md give the measured shares and
 speed-ups). While the GCN's
 parameters stay fixed (one training rollout, one evaluation) an :class:`InViewMemo` sends each
 distinct row through it once and hands out the stored result afterwards. Results keep their

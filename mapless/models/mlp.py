@@ -1,7 +1,7 @@
 """``mlp``: a small recurrent policy over the context vectors, a sanity baseline (not one of the
 paper's models). It shows what the observations alone support at a fraction of the cost.
 
-Inputs (docs/observations.md): the context rows of every category flattened (C x 4), the GloVe
+Inputs (docs/guide/simulator.md, "Observations"): the context rows of every category flattened (C x 4), the GloVe
 cosine of every category to the target (C), and the target's own context row (4, zeros when the
 target is not a category), plus the previous policy (6). Two 256-wide ReLU layers, an LSTMCell (``model.hidden_size``,
 512 as every model), actor and critic on h.

@@ -77,6 +77,6 @@ def assign_roles(model: nn.Module, roles: ParameterRoles) -> dict[str, str]:
         raise ParameterRoleError(
             f"model {type(model).__name__}: {'; '.join(problems)}. Every trainable parameter needs "
             f"exactly one role in parameter_roles ({POLICY}, {ENCODER}, {OUTER_ONLY} or "
-            f"{LEARNED_LOSS}; see docs/model.md, 'Adding a model')"
+            f"{LEARNED_LOSS}; see docs/guide/models.md, 'Adding a model')"
         )
     return assigned

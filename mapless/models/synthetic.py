@@ -1,4 +1,4 @@
-"""Random observations that satisfy docs/observations.md, for tests, smoke runs and benchmarks."""
+"""Random observations that satisfy docs/guide/simulator.md, "Observations", for tests, smoke runs and benchmarks."""
 
 from __future__ import annotations
 

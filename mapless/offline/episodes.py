@@ -5,7 +5,7 @@ Reading needs none of the original classes and never runs the file's code
 (:mod:`mapless.safe_pickle`): SAVN pickles hold a ``ThorAgentState`` start state and torch
 GloVe tensors.
 
-Mapping (docs/interop.md, section 2): AI2-THOR object ids changed between versions, so a target id
+Mapping (docs/guide/interop.md, section 2): AI2-THOR object ids changed between versions, so a target id
 is matched verbatim when the built-in scene has it, else to the nearest object of the same type (v1
 names translated) within a horizontal radius, else, when the episode lists one instance of the type
 and the built-in scene has one, to that one (the object moved); an id with no counterpart is

@@ -521,5 +521,5 @@ def offline_loader(root: str | Path, **kwargs: Any) -> Callable[[str], SceneData
 
 
 def offline_library(root: str | Path, category_set: str = "mjolnir101") -> SceneLibrary:
-    """A :class:`~mapless.sim.library.SceneLibrary` of a SAVN/MJOLNIR offline data root (docs/interop.md)."""
+    """A :class:`~mapless.sim.library.SceneLibrary` of a SAVN/MJOLNIR offline data root (docs/guide/interop.md)."""
     return SceneLibrary(offline_loader(root, category_set=category_set))

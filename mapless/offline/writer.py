@@ -15,7 +15,7 @@ original code bases read an exported folder unchanged:
   (``DiningTable``/``CoffeeTable`` boxes again under ``TableTop``...), so MJOLNIR's 101-object
   context vector finds them.
 * ``resnet18_featuremap.hdf5``: our semantic map in place of ResNet-18 conv5: ``F`` channels
-  (category coverage, floor, wall, depth; docs/observations.md) as float32 values in [0, 1],
+  (category coverage, floor, wall, depth; docs/guide/simulator.md, "Observations") as float32 values in [0, 1],
   zero-padded to 512 channels, shape ``(1, 512, 7, 7)`` (SAVN) or ``(512, 7, 7)`` (MJOLNIR).
 * ``mapless.json``: our side file (ignored by the originals): scene, channel count, dtype and scale
   of the semantic map, alias types; the reader uses it to undo the padding.

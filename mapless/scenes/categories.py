@@ -2,7 +2,7 @@
 
 The default category set is MJOLNIR's 101 GCN nodes (``all_objects_v1.txt``, AI2-THOR 1.0.1 type
 names). AI2-THOR 5 renamed or dropped some of them; :data:`V1_TO_V5` maps every v1 name onto the
-v5 types whose instances count as that category (see docs/simulator.md):
+v5 types whose instances count as that category (see docs/guide/simulator.md):
 
 * ``TableTop``   -> ``DiningTable``, ``CoffeeTable`` (v2 split the generic table type)
 * ``NightStand`` -> ``SideTable`` (renamed in v2)

@@ -1,6 +1,6 @@
 """Gymnasium environment: one ObjectNav episode at a time in a precomputed scene.
 
-Registered as ``mapless/ObjectNav-v0``. Observation space (docs/observations.md):
+Registered as ``mapless/ObjectNav-v0``. Observation space (docs/guide/simulator.md, "Observations"):
 
 * ``context`` Box float32 ``[C, 4]``: per category ``[in view, x_c, y_c, union-box area]``
 * ``features`` Box float32 ``[C + 3, 7, 7]``: semantic feature map

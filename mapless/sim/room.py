@@ -109,7 +109,7 @@ def obstacle_polygons(scene: Scene, margin: float) -> list[np.ndarray]:
     resting on the floor, each corner moved ``margin * sqrt(2)`` toward the centre. That moves each
     side of a square in by ``margin``, the long sides of an elongated footprint by less; an exact
     inward offset of every side would change 4 MoveAhead transitions of the 120 floor plans
-    (docs/simulator.md), and cached scenes and reported numbers depend on these."""
+    (docs/guide/simulator.md), and cached scenes and reported numbers depend on these."""
     polygons = []
     for obj in scene.objects:
         if obj.pickupable or obj.type in NON_OBSTACLE_TYPES or obj.box_min[1] > 0.15:

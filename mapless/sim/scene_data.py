@@ -35,7 +35,7 @@ class SceneData:
     (occlusion-aware 2-D box ``x1, y1, x2, y2`` in pixels of the 300x300 frame), ``view_distance``
     (m, the rule's distance) and ``view_visible`` (the success rule: in view, not in a closed
     receptacle, within the visibility distance).
-    ``context[p]`` is ``[C, 4]`` (docs/observations.md); ``features[p]`` is ``[F, 7, 7]`` stored as
+    ``context[p]`` is ``[C, 4]`` (docs/guide/simulator.md, "Observations"); ``features[p]`` is ``[F, 7, 7]`` stored as
     ``features_dtype`` and multiplied by ``feature_scale`` when read.
     """
 

@@ -30,7 +30,7 @@ from mapless.sim.task import (
     resolve_target_fields,
 )
 
-#: Every observation key a model can read (docs/observations.md).
+#: Every observation key a model can read (docs/guide/simulator.md, "Observations").
 OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index", "context_distance")
 
 
@@ -261,7 +261,7 @@ class BatchedNavEnv:
         return np.concatenate([d.features for d in self._datas])
 
     def observe(self, keys: tuple[str, ...] = OBSERVATION_KEYS) -> dict:
-        """Observation arrays of the current poses, float32 (docs/observations.md)."""
+        """Observation arrays of the current poses, float32 (docs/guide/simulator.md, "Observations")."""
         out = {}
         for key in keys:
             if key == "context":

@@ -30,7 +30,7 @@ def _require(ok: bool, key: str, message: str) -> None:
 
 @dataclass(frozen=True)
 class LayoutsConfig:
-    """Which object arrangements training episodes are drawn on (docs/simulator.md, "Scene variants").
+    """Which object arrangements training episodes are drawn on (docs/guide/simulator.md, "Scene variants").
 
     source: ``default`` (each floor plan's default arrangement only: the paper's protocol),
         ``rearrange2023`` (the Rearrangement dataset's training arrangements, floor plans x01-x20),
@@ -91,7 +91,7 @@ class EnvConfig:
     cache_dir: cache root, as $MAPLESS_CACHE (scenes go in ``<cache_dir>/scenes/``; None = $MAPLESS_CACHE
         or ~/.cache/mapless).
     offline_dir: a SAVN/MJOLNIR offline data root to train on instead of the built-in simulator
-        (docs/interop.md; its 512-channel ResNet maps need ``model.feature_channels=512``).
+        (docs/guide/interop.md; its 512-channel ResNet maps need ``model.feature_channels=512``).
     sim: simulator parameters (they select the scene cache entry).
     layouts: which arrangements of the floor plans episodes are drawn on (:class:`LayoutsConfig`).
     """
@@ -420,7 +420,7 @@ class TrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     """``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast) and the
     LSTM's weight products (forward, inner steps, weight gradient), where most of the arithmetic is;
-    parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`, docs/training.md
+    parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`, docs/guide/training.md
     "Precision"). Opt-in."""
 
     checkpoint_every: int = 10_000
@@ -510,7 +510,7 @@ class TrainConfig:
                 if _has_path(data, old):
                     raise ConfigError(
                         f"config key {prefix + old!r} has moved to {prefix + new!r}: {what} "
-                        f'(docs/training.md, "Configuration"); write it there'
+                        f'(docs/guide/training.md, "Configuration"); write it there'
                     )
 
     @property

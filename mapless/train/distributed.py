@@ -4,7 +4,7 @@ Every rank runs the batched trainer on its own episodes; before each optimizer s
 averaged over ranks with one all-reduce of a flat buffer, so every rank applies the same update to
 the same parameters and they stay identical (rank 0's initial parameters are broadcast once). gloo
 on the CPU; on GPUs nccl for the gradients and gloo for the CPU-side statistics. Only rank 0 writes
-logs and checkpoints. See docs/training.md.
+logs and checkpoints. See docs/guide/training.md.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ Two layouts, one :class:`Segment` type:
   episode ended idles, masked out. Adaptive models act with SAVN's inner loop at its test-time
   setting: every ``k`` steps one SGD step of the episode's own fast weights on the learned
   interaction loss. An episode's adaptation state cannot be carried across a segment boundary into
-  a replay, so each replay starts at the episode's first step (docs/training.md, "PPO"). As in the
+  a replay, so each replay starts at the episode's first step (docs/guide/training.md, "PPO"). As in the
   references, the 30-step limit is not bootstrapped there, unless ``bootstrap_time_limit``: then,
   as for segments, with V of the state the episode was cut in (under the episode's adapted fast
   weights).
