@@ -1,5 +1,6 @@
 """The wheel carries the package whole: every file under mapless/data (floor plans, grids, GloVe
-vectors, priors, episode sets), byte for byte, so that an installed mapless runs without the checkout."""
+vectors, priors, episode sets) and mapless/configs (budgets, recipes, experiment and training
+configs), byte for byte, and the licence, so that an installed mapless runs without the checkout."""
 
 from __future__ import annotations
 
@@ -9,7 +10,11 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
 import mapless
+
+pytestmark = pytest.mark.slow
 
 ROOT = Path(mapless.__file__).resolve().parent.parent
 
@@ -19,7 +24,7 @@ def test_the_wheel_holds_every_file_of_the_package_data(tmp_path: Path) -> None:
     # tree is shared with whoever else works in it.
     source = tmp_path / "source"
     source.mkdir()
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, source / name)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
     shutil.copytree(ROOT / "mapless", source / "mapless", ignore=ignore)
@@ -44,3 +49,9 @@ def test_the_wheel_holds_every_file_of_the_package_data(tmp_path: Path) -> None:
         # ... and the code beside it: every module of the package.
         modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "mapless").rglob("*.py")}
         assert modules <= set(archive.namelist())
+        # ... and the licence, the full Apache-2.0 text the metadata names.
+        (licence,) = [n for n in archive.namelist() if n.endswith(".dist-info/licenses/LICENSE")]
+        assert archive.read(licence) == (ROOT / "LICENSE").read_bytes()
+        metadata = archive.read(licence.replace("licenses/LICENSE", "METADATA")).decode()
+        assert "License-Expression: Apache-2.0" in metadata.splitlines()
+        assert b"Apache License\n                           Version 2.0" in archive.read(licence)
