@@ -24,42 +24,37 @@ Runs are stored under ``<runs_dir>/<model>__<variant>__s<seed>__<hash>`` where t
 whole training configuration, so experiments share identical runs (figure3 reuses table1's).
 """
 
-from mapless.experiments.config import (
-    BUDGETS,
-    EXPERIMENTS,
-    ExperimentConfig,
-    ExperimentEval,
-    budget_path,
-    config_path,
-    load_experiment,
-    read_experiment,
-    train_config,
-)
-from mapless.experiments.evaluator import Evaluator, experiment_scenes
-from mapless.experiments.launch import LocalLauncher, PlannedRun, SlurmLauncher
-from mapless.experiments.pipelines import PIPELINES, experiment_runs, planned_runs, reproduce
-from mapless.experiments.runs import RunTally, run_dir_for, train_run
+from __future__ import annotations
 
-__all__ = [
-    "BUDGETS",
-    "EXPERIMENTS",
-    "PIPELINES",
-    "Evaluator",
-    "ExperimentConfig",
-    "ExperimentEval",
-    "LocalLauncher",
-    "PlannedRun",
-    "RunTally",
-    "SlurmLauncher",
-    "budget_path",
-    "config_path",
-    "experiment_runs",
-    "experiment_scenes",
-    "load_experiment",
-    "planned_runs",
-    "read_experiment",
-    "reproduce",
-    "run_dir_for",
-    "train_config",
-    "train_run",
-]
+import importlib
+from typing import Any
+
+# Names resolve on first use (PEP 562): the command line reads the experiment and budget names from
+# config.py to build its parser, and must not pay for the evaluator's torch import while doing so.
+_EXPORTS = {
+    "config": (
+        "BUDGETS",
+        "EXPERIMENTS",
+        "ExperimentConfig",
+        "ExperimentEval",
+        "budget_path",
+        "config_path",
+        "load_experiment",
+        "read_experiment",
+        "train_config",
+    ),
+    "evaluator": ("Evaluator", "experiment_scenes"),
+    "launch": ("LocalLauncher", "PlannedRun", "SlurmLauncher"),
+    "pipelines": ("PIPELINES", "experiment_runs", "planned_runs", "reproduce"),
+    "runs": ("RunTally", "run_dir_for", "train_run"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = sorted(_MODULE_OF)
+
+
+def __getattr__(name: str) -> Any:
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
