@@ -101,6 +101,7 @@ eval:
         os.environ["MAPLESS_CACHE"] = previous
 
 
+@pytest.mark.slow
 def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     root, config = workspace
     reports = root / "reports"
@@ -150,6 +151,7 @@ def test_reproduce_table1_then_figures_reuse_runs(workspace, capsys):
     assert "reusing finished run" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resumes(
     workspace, monkeypatch, capsys
 ):
@@ -179,6 +181,7 @@ def test_ctrl_c_stops_the_experiment_at_a_checkpoint_and_the_same_command_resume
     assert (run_dir / FINAL_MODEL_FILE).is_file() and (reports / "table1" / "table1.md").is_file()
 
 
+@pytest.mark.slow
 def test_reproduce_table1_with_all_nine_models(workspace):
     """The paper's Table 1 lineup end to end: every trained model is selected on val and reported."""
     root, config = workspace
@@ -196,6 +199,7 @@ def test_reproduce_table1_with_all_nine_models(workspace):
     assert all(f"| {m} |" in md for m in models)
 
 
+@pytest.mark.slow
 def test_reproduce_with_two_seeds_reports_mean_and_std_over_seeds(workspace):
     root, config = workspace
     reports = root / "reports_seeds"
@@ -211,6 +215,7 @@ def test_reproduce_with_two_seeds_reports_mean_and_std_over_seeds(workspace):
     assert "±" in (reports / "table1" / "table1.md").read_text()
 
 
+@pytest.mark.slow
 def test_reproduce_table2_and_table3(workspace):
     root, config = workspace
     reports = root / "reports"
@@ -249,6 +254,7 @@ def test_reproduce_table2_and_table3(workspace):
     assert "kitchen" not in ablated.hierarchy_rooms
 
 
+@pytest.mark.slow
 def test_eval_cli_oracle_and_run_folder(workspace, capsys):
     root, _ = workspace
     out = root / "oracle"
@@ -282,6 +288,7 @@ def test_eval_cli_oracle_and_run_folder(workspace, capsys):
         assert (root / "sel" / "test.json").is_file()
 
 
+@pytest.mark.slow
 def test_eval_cli_adapted_unadapted_and_at_another_inner_rate(workspace, capsys):
     """`mapless eval` of one adaptive model file three ways, and `mapless compare` of two of them."""
     from train_fixtures import tiny_config
@@ -315,6 +322,7 @@ def test_eval_cli_adapted_unadapted_and_at_another_inner_rate(workspace, capsys)
     assert "for a trained adaptive model" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_reproduce_and_eval_under_the_reference_protocol(workspace, capsys):
     from mapless.episodes.protocols import PROTOCOLS
 
@@ -358,6 +366,7 @@ def test_reproduce_and_eval_under_the_reference_protocol(workspace, capsys):
     assert record["protocol"] == "reference" and "within 1.5 m" in record["protocol_label"]
 
 
+@pytest.mark.slow
 def test_eval_on_a_published_episode_pickle(workspace, capsys):
     import pickle
 
@@ -474,6 +483,7 @@ def test_the_time_limit_bootstrap_names_a_run_folder_only_where_it_changes_train
     assert folder("savn") != folder("savn", off)
 
 
+@pytest.mark.slow
 def test_reproduce_ablation_rows_against_the_focus_model(workspace):
     """A row that trains (its own runs, named after it) and a row that only evaluates the focus
     model's chosen snapshot without test-time adaptation, each paired with the focus model."""
@@ -549,6 +559,7 @@ def test_the_medium_ablation_extends_the_small_one_and_plans_its_runs():
     assert planned_runs(load_experiment("ablation", "small", seeds=3)) == {"cvmeta": 3 * 11 + 7}
 
 
+@pytest.mark.slow
 def test_selection_may_read_a_subset_while_the_report_reads_every_episode(workspace):
     from mapless.experiments.evaluator import Evaluator
 
@@ -603,6 +614,7 @@ def test_an_adaptive_checkpoint_adapts_at_a_test_time_inner_rate_when_given_one(
         AgentSpec(checkpoint=str(paths["a3c"]), inner_lr=0.05).build(2)
 
 
+@pytest.mark.slow
 def test_the_paper_protocol_selects_and_reports_on_the_same_episodes_whatever_select_per_room(workspace):
     from mapless.experiments.evaluator import Evaluator
 
@@ -612,6 +624,7 @@ def test_the_paper_protocol_selects_and_reports_on_the_same_episodes_whatever_se
     assert ev.select_episodes is ev.report_episodes and len(ev.report_episodes) == 6
 
 
+@pytest.mark.slow
 def test_table1_within_minutes_chooses_each_run_again_among_its_early_snapshots(workspace):
     root, config = workspace
     reports = root / "reports_within"

@@ -258,6 +258,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("watch", [True, False])
 def test_evaluation_workers_exit_when_their_parent_dies(watch: bool) -> None:
     parent = subprocess.Popen([sys.executable, "-c", _POOL_THEN_DIE.format(watch=watch)],

@@ -22,7 +22,7 @@ from mapless.experiments import SlurmLauncher, experiment_runs, launch, load_exp
 from mapless.experiments.launch import LocalLauncher, default_jobs, in_use, read_progress
 from mapless.provenance import cpu_cores
 
-pytestmark = pytest.mark.usefixtures("single_torch_thread")
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_torch_thread")]
 
 #: Two runs: a3c with two seeds (random, untrained, is left out to keep it short).
 TWO_RUNS = ["--set", "models=[a3c]", "--set", "focus=a3c", "--seeds", "2"]

@@ -18,6 +18,7 @@ from mapless.train.hogwild import AsyncTrainer, WorkerError
 from mapless.train.runtime import seed_for
 
 
+@pytest.mark.slow
 def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:
     config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=12", "checkpoint_every=6")
     summary = AsyncTrainer(config, tmp_path, fixture_library).run()
@@ -33,6 +34,7 @@ def test_async_training_updates_the_shared_model(tmp_path: Path) -> None:
     assert [n for n, _ in ckpt.snapshots(tmp_path)] == [6, 12]
 
 
+@pytest.mark.slow
 def test_a_resumed_async_run_starts_from_the_checkpoints_model_optimizer_and_counters(tmp_path: Path) -> None:
     config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=1", "episodes=6", "checkpoint_every=6")
     AsyncTrainer(config, tmp_path, fixture_library).run()
@@ -52,6 +54,7 @@ def test_a_resumed_async_run_starts_from_the_checkpoints_model_optimizer_and_cou
         )
 
 
+@pytest.mark.slow
 def test_killed_worker_is_reported_and_the_run_stops(tmp_path: Path) -> None:
     config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=1000000000")
     trainer = AsyncTrainer(config, tmp_path, fixture_library)
@@ -85,6 +88,7 @@ def broken_library():
     raise RuntimeError("the scene files are unreadable")
 
 
+@pytest.mark.slow
 def test_a_failing_worker_reports_its_traceback(tmp_path: Path) -> None:
     config = tiny_config("a3c", "a3c.mode=async", "a3c.workers=2", "episodes=1000000000")
     with pytest.raises(WorkerError, match="RuntimeError: the scene files are unreadable"):

@@ -7,6 +7,7 @@ import os
 import socket
 from pathlib import Path
 
+import pytest
 import torch
 import torch.multiprocessing as mp
 from train_fixtures import fixture_library, tiny_config
@@ -15,6 +16,8 @@ from mapless import checkpoint as ckpt
 from mapless.errors import TrainingDiverged
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
+
+pytestmark = pytest.mark.slow
 
 WORLD = 2
 

@@ -287,6 +287,7 @@ def _wait_for(predicate, process: subprocess.Popen, seconds: float = 180.0) -> N
         time.sleep(0.2)
 
 
+@pytest.mark.slow
 def test_sigint_stops_at_a_checkpoint_and_sigkill_loses_only_the_work_since_the_last(tmp_path: Path) -> None:
     """A real `mapless train` process: Ctrl-C finishes the update, checkpoints and exits 130 with the
     resume command; SIGKILL mid-run leaves the last checkpoint whole; `--resume` then finishes."""
@@ -387,6 +388,7 @@ def _alive(pid: int) -> bool:
     return bool(state.strip()) and not state.strip().startswith("Z")
 
 
+@pytest.mark.slow
 def test_async_workers_do_not_outlive_a_killed_trainer(tmp_path: Path) -> None:
     config = tmp_path / "train.yaml"
     budget = {"model": {"name": "a3c", "hidden_size": 16}, "env": {"scenes": "FloorPlan401"},
