@@ -27,7 +27,9 @@ from pathlib import Path
 
 import torch
 
-PPO_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "train_ppo.yaml"
+from mapless.configs import configs_dir
+
+PPO_CONFIG = configs_dir() / "train_ppo.yaml"
 
 
 def build(model: str, overrides: list[str]):

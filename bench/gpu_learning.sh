@@ -17,7 +17,7 @@ workers=$(nproc)
 python -m mapless scenes build train --workers "$workers"
 python -m mapless scenes build val --workers "$workers"
 
-# The small budget's cvmeta recipe (experiments/budgets/small.yaml, per_model) with the imitation warm start.
+# The small budget's cvmeta recipe (mapless/configs/budgets/small.yaml, per_model) with the imitation warm start.
 recipe="model.target_context=true meta.first_order=true ppo.imitation_coef=1 ppo.imitation_frames=60000"
 laptop="$recipe model.gcn_hidden=64 model.fusion_channels=8 ppo.minibatches=1"
 python bench/learning_curve.py --parallel 3 --minutes "$minutes" --eval-every 1 --val-episodes 200 \

@@ -1,7 +1,7 @@
 """Learning check (a benchmark, not a test): does a model's training success rate clearly beat the
 random agent's within a wall-clock budget on this machine?
 
-Trains with ``mapless train``'s code path (config: experiments/train_learning_check.yaml plus
+Trains with ``mapless train``'s code path (config: mapless/configs/train_learning_check.yaml plus
 ``--set`` overrides) for ``--minutes``, measures the random agent's success on episodes drawn by the
 same training sampler, and writes the training-success curve against the random baseline as a PNG,
 plus the numbers as JSON.
@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from mapless.configs import configs_dir
 
 
 def random_success(config, episodes: int) -> tuple[float, float]:
@@ -53,7 +55,7 @@ def main() -> None:
     parser.add_argument(
         "--config",
         type=Path,
-        default=Path(__file__).resolve().parent.parent / "experiments" / "train_learning_check.yaml",
+        default=configs_dir() / "train_learning_check.yaml",
     )
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--minutes", type=float, default=30.0)

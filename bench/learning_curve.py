@@ -1,7 +1,7 @@
 """Learning benchmark: validation SR against wall-clock minutes and frames, model by model.
 
-Trains each run from scratch with its recipe (default: experiments/train_ppo.yaml, recurrent PPO;
-``MODEL@a3c`` uses the references' A3C recipe of experiments/table2_small.yaml's and table3_small.yaml's training blocks),
+Trains each run from scratch with its recipe (default: mapless/configs/train_ppo.yaml, recurrent PPO;
+``MODEL@a3c`` uses the references' A3C recipe of mapless/configs/table2_small.yaml's and table3_small.yaml's training blocks),
 pauses every ``--eval-every`` minutes of training to evaluate the current policy on a fixed subset of
 the built-in val set (``--val-episodes``, the same episodes for every run, actions sampled as the
 evaluator does), and prints SR / SPL against minutes and frames, the time to reach ``--target`` val SR
@@ -28,10 +28,11 @@ import multiprocessing
 import time
 from pathlib import Path
 
+from mapless.configs import configs_dir
 from mapless.episodes.protocols import get_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
-PPO_CONFIG = ROOT / "experiments" / "train_ppo.yaml"
+PPO_CONFIG = configs_dir() / "train_ppo.yaml"
 A3C_TRAIN = {"algo": "a3c", "a3c": {"batch_size": 32, "lr": 0.0005}, "frames": 0, "episodes": 10**9}
 
 

@@ -8,13 +8,13 @@ import json
 import pickle
 import re
 import shutil
-from pathlib import Path
 
 import pytest
 from scene_fixtures import grid_scene
 
 from mapless.cli import main
 from mapless.config import ConfigError, load_config
+from mapless.configs import configs_dir
 from mapless.episodes import evalsets
 from mapless.offline import OfflineFormatError, export_scene, load_offline_scene, read_episode_file
 from mapless.sim import cache
@@ -283,7 +283,7 @@ def test_the_cache_folder_deleted_during_a_build(tmp_path, monkeypatch):
 
 def test_a_negative_seed_is_a_config_error_naming_the_key(tmp_path, capsys):
     """numpy's SeedSequence refuses it with a bare traceback (issue 45, points 1 and 14)."""
-    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    smoke = str(configs_dir() / "train_smoke.yaml")
     runs = tmp_path / "runs"
     err = error_of(["train", smoke, "--set", "seed=-1", "--runs-root", str(runs)], capsys)
     assert "config key 'seed': must be >= 0" in err and not runs.exists()
@@ -327,7 +327,7 @@ def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monke
     err = error_of(["eval", "random", "--per-room", "1", "--out", str(tmp_path / "out")], capsys)
     assert f"{tmp_path / 'out' / 'val.json'} is a folder" in err
 
-    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    smoke = str(configs_dir() / "train_smoke.yaml")
     err = error_of(["train", smoke, "--run-dir", str(blocker)], capsys)
     assert f"cannot write the run folder {blocker}: {blocker} is not a folder" in err
     err = error_of(["scenes", "show", SCENE, "--out", str(blocker / "scene.png")], capsys)
@@ -360,7 +360,7 @@ def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monke
 )
 def test_an_impossible_model_size_is_a_config_error(override, tmp_path, capsys):
     """A RuntimeError traceback from torch, or (0) a model without units that trained (issue 45, 15)."""
-    smoke = str(Path(__file__).resolve().parents[1] / "experiments" / "train_smoke.yaml")
+    smoke = str(configs_dir() / "train_smoke.yaml")
     for model in ("a3c", "savn", "mjolnir_o", "cvmeta"):
         argv = ["train", smoke, "--set", f"model.name={model}", "--set", override]
         err = error_of([*argv, "--runs-root", str(tmp_path)], capsys)

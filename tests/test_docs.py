@@ -54,7 +54,7 @@ def test_every_cited_bench_script_exists_or_its_citation_says_where_it_went() ->
         *sorted((REPO / "docs").rglob("*.md")),
         *sorted((REPO / "mapless").rglob("*.py")),
         *sorted((REPO / "bench").iterdir()),
-        *sorted((REPO / "experiments").rglob("*.yaml")),
+        *sorted((REPO / "mapless" / "configs").rglob("*.yaml")),
     ]
     dangling, recovered = [], set()
     for page in pages:

@@ -4,7 +4,7 @@ tests/data/experiment_configs_resolved.json before the split; since then only th
 imitation warm start and every baseline's target_context, the layout-shift experiment and the
 fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
 time-limit bootstrap; on 2026-12-06 the ablation experiment, ``eval.select_per_room`` and the move of
-the models' settings into experiments/recipes/laptop.yaml, which left every run folder where it was:
+the models' settings into recipes/laptop.yaml (now mapless/configs/), which left every run folder where it was:
 tests/data/run_folders.json; then eval.within_minutes and the long budget; then issue 44's a3c: block,
 by the key mapping alone (mapless.train.config.from_legacy_layout: the same values, checked by a
 one-off script), and its merge of an experiment's train: over the budget's, which gave table2_smoke
@@ -27,7 +27,7 @@ from pathlib import Path
 import pytest
 
 from mapless.config import ConfigError, read_mapping, to_dict
-from mapless.errors import UnknownNameError
+from mapless.errors import MaplessError, UnknownNameError
 from mapless.experiments import (
     BUDGETS,
     EXPERIMENTS,
@@ -36,7 +36,7 @@ from mapless.experiments import (
     read_experiment,
     train_config,
 )
-from mapless.experiments.config import read_budget
+from mapless.experiments.config import read_budget, shipped_experiment
 from mapless.experiments.runs import run_dir_for
 from mapless.models import MODELS
 
@@ -47,19 +47,42 @@ RESOLVED = json.loads((DATA / "experiment_configs_resolved.json").read_text())
 RUN_FOLDERS = json.loads((DATA / "run_folders.json").read_text())
 
 
-#: Every shipped experiment file (layout_shift has none at the full budget).
-SHIPPED = [(e, b) for e in EXPERIMENTS for b in BUDGETS if config_path(e, b).is_file()]
+#: Every experiment and budget captured when each had its own file; since the configs became package
+#: data, one that differs from its budget in nothing has no file (table1_small is the small budget).
+SHIPPED = [(e, b) for e in EXPERIMENTS for b in BUDGETS if f"{e}_{b}" in RESOLVED]
 
 
 def test_every_shipped_experiment_file_has_captured_values() -> None:
-    assert {f"{e}_{b}" for e, b in SHIPPED} == set(RESOLVED)
+    files = {f"{e}_{b}" for e in EXPERIMENTS for b in BUDGETS if config_path(e, b).is_file()}
+    assert files <= set(RESOLVED)
+    # The ones whose files went, each now the budget as it is.
+    assert set(RESOLVED) - files == {
+        *(f"table1_{b}" for b in BUDGETS),
+        "figure3_full",
+        "figure3_small",
+        "figures45_small",
+    }
 
 
 @pytest.mark.parametrize("experiment, budget", SHIPPED)
 def test_every_experiment_and_budget_resolves_as_before(experiment: str, budget: str) -> None:
     # read_experiment does not build the runs' TrainConfigs, which the full budget's device: cuda
     # would refuse on a machine without a GPU.
-    assert to_dict(read_experiment(config_path(experiment, budget))) == RESOLVED[f"{experiment}_{budget}"]
+    resolved = read_experiment(shipped_experiment(experiment, budget))
+    assert to_dict(resolved) == RESOLVED[f"{experiment}_{budget}"]
+
+
+def test_an_experiment_with_no_file_is_its_budget_as_it_is(tmp_path: Path) -> None:
+    assert not config_path("layout_shift", "full").is_file()
+    config = load_experiment("layout_shift", "full", overrides=["train.device=cpu"])
+    budget = read_budget("full")
+    assert config.experiment == "layout_shift" and list(config.models) == budget["models"]
+    assert config.runs_dir == budget["runs_dir"] and config.seeds == budget["seeds"]
+    with pytest.raises(UnknownNameError, match="tabel1"):
+        load_experiment("tabel1", "small")
+    # A file given by path must be there: no budget stands in for a missing file of one's own.
+    with pytest.raises(MaplessError, match="no experiment config"):
+        load_experiment("table1", "small", path=tmp_path / "table1_small.yaml")
 
 
 @pytest.mark.parametrize("experiment, budget", [(e, b) for e, b in SHIPPED if b != "full"])
@@ -186,7 +209,7 @@ def _run_folders() -> dict[str, str]:
     folders = {}
     for experiment in ("table1", "table2", "table3", "layout_shift", "ablation"):
         for budget in ("small", "medium", "long"):
-            if not config_path(experiment, budget).is_file():
+            if f"{experiment}_{budget}" not in RESOLVED:
                 continue
             for protocol in ("standard", "reference"):
                 overrides = [f"eval.protocol={protocol}", "train.threads=1"]
@@ -209,16 +232,21 @@ def test_every_shipped_run_keeps_its_folder() -> None:
 
 
 def test_an_experiment_that_only_renames_another_is_an_alias() -> None:
-    """Two shipped files that resolve alike but for ``experiment`` are not two copies to keep in
-    step: one of them says only ``extends:`` and ``experiment:`` (the figures reuse Table 1's
-    configuration, so they extend its file)."""
+    """Two shipped experiments that resolve alike but for ``experiment`` are not two copies to keep in
+    step: one of them has no file (the budget as it is: the figures reuse Table 1's configuration)
+    or says only ``extends:`` and ``experiment:``."""
     resolved = {
-        (e, b): {**to_dict(read_experiment(config_path(e, b))), "experiment": None} for e, b in SHIPPED
+        (e, b): {**to_dict(read_experiment(shipped_experiment(e, b))), "experiment": None} for e, b in SHIPPED
     }
     pairs = [(a, b) for a in SHIPPED for b in SHIPPED if a < b and resolved[a] == resolved[b]]
     # figure3 = table1 (full); figure3 = figures45 = table1 (small: three pairs); figure3 = figures45
     # (smoke); table2 = table3 (smoke, since an experiment's train: merges into the budget's)
     assert len(pairs) == 6
     for pair in pairs:
-        aliases = [p for p in pair if set(read_mapping(config_path(*p))) == {"extends", "experiment"}]
+        aliases = [
+            p
+            for p in pair
+            if not config_path(*p).is_file()
+            or set(read_mapping(config_path(*p))) == {"extends", "experiment"}
+        ]
         assert aliases, f"{pair}: the same configuration written twice; make one `extends:` the other"

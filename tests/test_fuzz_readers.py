@@ -26,6 +26,7 @@ from train_fixtures import tiny_config
 
 from mapless import checkpoint as ckpt
 from mapless.config import load_config, to_dict
+from mapless.configs import configs_dir
 from mapless.episodes import evalsets
 from mapless.errors import MaplessError
 from mapless.experiments.config import ExperimentConfig
@@ -474,12 +475,12 @@ CRAFTED_YAML = [
 
 @pytest.mark.parametrize(
     ("kind", "source"),
-    [(TrainConfig, "train_smoke.yaml"), (ExperimentConfig, "table1_smoke.yaml")],
+    [(TrainConfig, "train_smoke.yaml"), (ExperimentConfig, "table3_smoke.yaml")],
     ids=["train", "experiment"],
 )
 def test_configs(tmp_path, kind, source):
     path = tmp_path / "config.yaml"
-    path.write_bytes((REPO / "experiments" / source).read_bytes())
+    path.write_bytes((configs_dir() / source).read_bytes())
     load_config(kind, path)
 
     def dump(value: Any) -> bytes:
@@ -493,5 +494,5 @@ def test_configs(tmp_path, kind, source):
     counts = fuzz(path, lambda: load_config(kind, path), (label for each in inputs for label in each))
     assert counts["refused"] > 40
     for override in ("seed", "=1", "a..b=1", ".=1", "seed=[", "model=3", "model.name.x=1", "env.sim=[1]"):
-        path.write_bytes((REPO / "experiments" / source).read_bytes())
+        path.write_bytes((configs_dir() / source).read_bytes())
         assert outcome(lambda o=override: load_config(kind, path, [o])) in ("read", "refused")

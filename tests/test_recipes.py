@@ -1,4 +1,4 @@
-"""Named training recipes (experiments/recipes/): `mapless train` and the budgets read the same
+"""Named training recipes (mapless/configs/recipes/): `mapless train` and the budgets read the same
 per-model settings, in a fixed order of precedence, and bad recipes are clear errors."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from mapless.config import ConfigError, to_dict
+from mapless.configs import configs_dir
 from mapless.experiments import load_experiment, train_config
 from mapless.train.recipes import load_train_config, recipe_names, with_recipe
 
@@ -26,9 +27,9 @@ RUN_LENGTH = (
 
 @pytest.mark.parametrize("model", ["cvmeta", "a3c", "mjolnir_o", "mlp"])
 def test_the_one_run_recipe_trains_a_model_as_the_small_budget_does(model: str) -> None:
-    """`mapless train experiments/train_ppo.yaml --set model.name=X` and the small budget's run of X
+    """`mapless train train_ppo --set model.name=X` and the small budget's run of X
     differ only in how long they train and where the run goes."""
-    one_run = load_train_config(ROOT / "experiments" / "train_ppo.yaml", [f"model.name={model}"])
+    one_run = load_train_config(configs_dir() / "train_ppo.yaml", [f"model.name={model}"])
     budget = train_config(load_experiment("table1", "small"), model, seed=1)
     one_run_dict, budget_dict = to_dict(one_run), to_dict(budget)
     for key in RUN_LENGTH:

@@ -19,6 +19,7 @@ from mapless import checkpoint as ckpt
 from mapless.agent.precision import KERNEL_CACHE_CAPACITY
 from mapless.cli import main as cli_main
 from mapless.config import ConfigError, from_dict, load_config
+from mapless.configs import configs_dir
 from mapless.train.builders import new_model
 from mapless.train.config import TrainConfig
 from mapless.train.gradients import clip_gradients
@@ -270,11 +271,9 @@ def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.Ca
     assert [n for n, _ in ckpt.snapshots(run_dir)] == [8, 16]
 
 
-@pytest.mark.parametrize(
-    "path", sorted(Path(__file__).parent.parent.glob("experiments/train_*.yaml")), ids=lambda p: p.name
-)
+@pytest.mark.parametrize("path", sorted(configs_dir().glob("train_*.yaml")), ids=lambda p: p.name)
 def test_shipped_training_configs_load(path: Path) -> None:
-    """As `mapless train` reads them: over the recipe a file names (experiments/recipes/)."""
+    """As `mapless train` reads them: over the recipe a file names (mapless/configs/recipes/)."""
     config = load_train_config(path)
     assert config.episodes > 0 or config.frames > 0
 

@@ -104,7 +104,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rep.add_argument("--budget", choices=BUDGETS, default="smoke")
     rep.add_argument("--seeds", type=positive_int, help="training seeds per run (overrides the config)")
     rep.add_argument(
-        "--config", type=Path, help="experiment YAML (default experiments/EXPERIMENT_BUDGET.yaml)"
+        "--config",
+        type=Path,
+        help="experiment YAML (default: the shipped EXPERIMENT_BUDGET.yaml, or the budget as it is "
+        "where none ships)",
     )
     rep.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     rep.add_argument(

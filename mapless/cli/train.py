@@ -1,4 +1,4 @@
-"""``mapless train CONFIG.yaml [--set key=value ...]`` and ``mapless train --resume RUN_DIR``."""
+"""``mapless train CONFIG [--set key=value ...]`` and ``mapless train --resume RUN_DIR``."""
 
 from __future__ import annotations
 
@@ -9,12 +9,20 @@ from pathlib import Path
 
 from mapless.cli.common import add_command
 from mapless.config import apply_overrides, read_mapping
+from mapless.configs import train_config_file
 from mapless.episodes.protocols import PROTOCOLS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = add_command(subparsers, "train", _train, help="train a model (PPO or A3C); writes a run folder")
-    parser.add_argument("config", nargs="?", type=Path, help="YAML TrainConfig (experiments/train_*.yaml)")
+    parser.add_argument(
+        "config",
+        nargs="?",
+        metavar="CONFIG",
+        help="a YAML training config: a path when it contains '/' or ends in .yaml (my/run.yaml, "
+        "./train_ppo.yaml), otherwise the name of a shipped one (train_ppo, train_smoke, train_cvmeta, "
+        "...: `mapless train train_ppo --set model.name=a3c`)",
+    )
     parser.add_argument(
         "--set",
         action="append",
@@ -40,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=tuple(PROTOCOLS),
         help="train for an evaluation protocol's success rule and episodes' classes: reference = within "
         "1.5 m, as the SAVN/MJOLNIR data (--set env.sim.visibility_distance=1.5), on the published HOZ "
-        "episodes' classes where CONFIG.yaml and --set name no env.target_set (hoz22); standard and "
+        "episodes' classes where CONFIG and --set name no env.target_set (hoz22); standard and "
         "paper = 1.0 m, the default",
     )
 
@@ -53,21 +61,22 @@ def _train(args: argparse.Namespace) -> int:
     from mapless.train.run import default_run_dir, resume_config, train
 
     overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
+    config_file = None if args.config is None else train_config_file(args.config)
     if args.protocol:
-        overrides += protocol_overrides(args.protocol, args.config, overrides)
+        overrides += protocol_overrides(args.protocol, config_file, overrides)
     if args.resume is not None:
         if args.config is not None:
-            raise ConfigError("give either CONFIG.yaml or --resume RUN_DIR, not both")
+            raise ConfigError("give either CONFIG or --resume RUN_DIR, not both")
         if args.protocol:
             raise ConfigError("a resumed run keeps the success rule it was trained under; drop --protocol")
         config, state = resume_config(args.resume, overrides)
         run_dir = args.resume
     else:
-        if args.config is None:
-            raise ConfigError("mapless train needs CONFIG.yaml (or --resume RUN_DIR)")
-        config = load_train_config(args.config, overrides)
+        if config_file is None:
+            raise ConfigError("mapless train needs CONFIG (or --resume RUN_DIR)")
+        config = load_train_config(config_file, overrides)
         state = None
-        run_dir = args.run_dir or default_run_dir(config, args.runs_root, args.config.stem)
+        run_dir = args.run_dir or default_run_dir(config, args.runs_root, config_file.stem)
     summary = train(config, run_dir, resume=state)
     print(json.dumps({"run_dir": str(run_dir), **{k: round(v, 3) for k, v in summary.items()}}))
     if summary.get("stopped_early"):

@@ -18,8 +18,9 @@ evaluates, returning records (records.py); render.py writes them as ``reports/EX
   succeeds (Figure 4) and a failure case of the focus model (Figure 5), plus an egocentric GIF
   (from Table 1's records).
 
-Configurations live in ``experiments/<experiment>_<budget>.yaml``, each read over its budget's
-``experiments/budgets/<budget>.yaml`` (:class:`ExperimentConfig`).
+Configurations are package data (:mod:`mapless.configs`): ``<experiment>_<budget>.yaml``, each read
+over its budget's ``budgets/<budget>.yaml``, or the budget as it is where the experiment has no file
+(:class:`ExperimentConfig`).
 Runs are stored under ``<runs_dir>/<model>__<variant>__s<seed>__<hash>`` where the hash covers the
 whole training configuration, so experiments share identical runs (figure3 reuses table1's).
 """

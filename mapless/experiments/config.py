@@ -1,10 +1,11 @@
-"""Experiment configurations: ``experiments/<experiment>_<budget>.yaml`` read over
-``experiments/budgets/<budget>.yaml`` -> :class:`ExperimentConfig`, and the
-:class:`~mapless.train.config.TrainConfig` of each of an experiment's runs.
+"""Experiment configurations: the shipped ``<experiment>_<budget>.yaml`` read over
+``budgets/<budget>.yaml`` (package data, :mod:`mapless.configs`) -> :class:`ExperimentConfig`, and
+the :class:`~mapless.train.config.TrainConfig` of each of an experiment's runs.
 
 A budget file holds what every experiment of that budget shares (training and evaluation
 settings, seeds, runs folder, Table 1's model lineup); an experiment file names its budget and holds
-only what differs from it. The experiment file's ``train:`` is read over the budget's key by key,
+only what differs from it, and an experiment that differs in nothing has no file: it is the budget
+as it is (``table1_small``). The experiment file's ``train:`` is read over the budget's key by key,
 nested mappings included (an experiment changes a budget's training settings by naming only those);
 every other top-level key it sets replaces the budget's key of that name as a whole, which keeps
 what a run gets readable from two files; ``--set`` overrides apply last."""
@@ -13,11 +14,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Literal
 
 from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
+from mapless.configs import configs_dir
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -183,26 +184,34 @@ class ExperimentConfig:
         return {n: r for n, r in rows.items() if not self.ablation_rows or n in self.ablation_rows}
 
 
-def _experiments_dir() -> Path:
-    return Path(str(resources.files("mapless"))).parent / "experiments"
-
-
 def config_path(experiment: str, budget: str, root: Path | None = None) -> Path:
-    """``experiments/<experiment>_<budget>.yaml`` of the repository (or of ``root``)."""
-    return (root or _experiments_dir()) / f"{experiment}_{budget}.yaml"
+    """The shipped ``<experiment>_<budget>.yaml`` (or ``root``'s); where there is no such file the
+    experiment is the budget as it is (:func:`shipped_experiment`)."""
+    return (root or configs_dir()) / f"{experiment}_{budget}.yaml"
 
 
 def budget_path(budget: str) -> Path:
-    """``experiments/budgets/<budget>.yaml`` of the repository: what the budget's experiments share."""
-    return _experiments_dir() / "budgets" / f"{budget}.yaml"
+    """The shipped ``budgets/<budget>.yaml``: what the budget's experiments share."""
+    return configs_dir() / "budgets" / f"{budget}.yaml"
 
 
-def read_experiment(path: Path, overrides: list[str] | None = None) -> ExperimentConfig:
-    """The experiment file at ``path`` read over the file of the budget it names (a file naming no
-    budget stands alone), then ``overrides``: ``train:`` key by key over the budget's, the other
-    top-level keys replacing the budget's. The runs' training configs are not checked here
-    (:func:`load_experiment` does)."""
-    data = _experiment_mapping(path)
+def shipped_experiment(experiment: str, budget: str) -> dict:
+    """The mapping of ``experiment`` at ``budget`` as shipped: its file, or, where none ships, the
+    budget as it is with that experiment (the budget's lineup, runs and settings)."""
+    path = config_path(experiment, budget)
+    if path.is_file():
+        return _experiment_mapping(path)
+    if experiment not in EXPERIMENTS:
+        raise UnknownNameError("experiment", experiment, EXPERIMENTS)
+    return {"experiment": experiment, "budget": budget}
+
+
+def read_experiment(source: Path | dict, overrides: list[str] | None = None) -> ExperimentConfig:
+    """The experiment file at ``source`` (or a mapping, :func:`shipped_experiment`'s) read over the
+    file of the budget it names (one naming no budget stands alone), then ``overrides``: ``train:``
+    key by key over the budget's, the other top-level keys replacing the budget's. The runs'
+    training configs are not checked here (:func:`load_experiment` does)."""
+    data = _experiment_mapping(source) if isinstance(source, Path) else dict(source)
     if "budget" in data:
         budget = read_budget(data["budget"])
         train = merge_mappings(budget.get("train") or {}, data.get("train") or {})
@@ -228,7 +237,7 @@ def _experiment_mapping(path: Path, _extending: tuple[Path, ...] = ()) -> dict:
 
 
 def read_budget(budget: str, directory: Path | None = None, _extending: tuple[str, ...] = ()) -> dict:
-    """The mapping of ``experiments/budgets/<budget>.yaml``. A budget file that says ``extends: B``
+    """The mapping of the shipped ``budgets/<budget>.yaml``. A budget file that says ``extends: B``
     is read over B's mapping key by key, nested mappings included, so a longer budget states only
     what it changes (``medium`` is ``small`` for longer). ``directory``: the budgets folder (tests)."""
     if budget not in BUDGETS:
@@ -251,17 +260,19 @@ def load_experiment(
     overrides: list[str] | None = None,
     seeds: int | None = None,
 ) -> ExperimentConfig:
-    """The configuration of ``experiment`` at ``budget`` (or the file ``path``), with every run's
-    training config checked before any work starts: a typo in any model's block fails here."""
-    path = path or config_path(experiment, budget)
-    if not path.is_file():
+    """The configuration of ``experiment`` at ``budget`` as shipped (or in the file ``path``), with
+    every run's training config checked before any work starts: a typo in any model's block fails
+    here."""
+    if path is not None and not path.is_file():
         raise MaplessError(
             f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
         )
     extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds is not None else [])]
-    config = read_experiment(path, extra)
+    config = read_experiment(path or shipped_experiment(experiment, budget), extra)
     if config.experiment != experiment:
-        raise ConfigError(f"{path} configures {config.experiment!r}, not {experiment!r}")
+        raise ConfigError(
+            f"{path or config_path(experiment, budget)} configures {config.experiment!r}, not {experiment!r}"
+        )
     # The per_model blocks of models not compared here too: a misspelt name or key is caught
     # rather than silently ignored.
     for model in sorted({*config.models, config.focus, *config.per_model} - {"random"}):

@@ -1,8 +1,8 @@
 """Named training recipes: how each model trains, written once and read by `mapless train` and by
 the experiments' budgets alike (no copied config).
 
-A recipe is ``experiments/recipes/<name>.yaml``: ``train`` (training-config keys every model gets)
-and ``per_model`` (keys per model name). A training config that says ``recipe: NAME`` is read over
+A recipe is ``recipes/<name>.yaml`` of the shipped configs (:mod:`mapless.configs`): ``train``
+(training-config keys every model gets) and ``per_model`` (keys per model name). A training config that says ``recipe: NAME`` is read over
 it: the recipe's ``train``, then its ``per_model`` entry for the config's model, then the config's
 own keys, nested mappings key by key; the recipe's settings block of the algorithm the config does
 not train with (``ppo:`` under ``algo: a3c``) is left out, so ``--set algo=a3c`` over a PPO recipe
@@ -12,18 +12,18 @@ recipe's name is not kept (its keys are), so a run folder's config says everythi
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
+from mapless.configs import configs_dir
 from mapless.errors import UnknownNameError
 from mapless.models import ModelConfig
 from mapless.train.config import TrainConfig
 
 
 def recipes_dir() -> Path:
-    """``experiments/recipes`` of the repository."""
-    return Path(str(resources.files("mapless"))).parent / "experiments" / "recipes"
+    """The shipped recipes (package data)."""
+    return configs_dir() / "recipes"
 
 
 def recipe_names(directory: Path | None = None) -> tuple[str, ...]:
