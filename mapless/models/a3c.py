@@ -20,6 +20,7 @@ from mapless.models.dropout import Dropout
 from mapless.models.layers import pointwise_conv, target_context_input, tile
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import ADAPTIVE, RECURRENT, SAVN_EMBEDDING
 
 BASE_EMBEDDING = EMBED * GRID * GRID  # 3136
 
@@ -71,6 +72,7 @@ class SavnEmbeddingMixin:
 class A3CModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "SAVN's non-adaptive A3C (ResNet map + GloVe + previous policy -> LSTM)"
     parameter_roles = SAVN_EMBEDDING_ROLES
+    settings = RECURRENT | SAVN_EMBEDDING
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -87,6 +89,7 @@ class SavnModel(LearnedLossMixin, A3CModel):
     description = "SAVN: a3c + learned interaction loss, inner SGD steps at train and test time"
     default_inner_lr = 1e-4  # allenai/savn --inner_lr default
     parameter_roles = SAVN_EMBEDDING_ROLES | LEARNED_LOSS_ROLES
+    settings = RECURRENT | SAVN_EMBEDDING | ADAPTIVE
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

@@ -172,6 +172,9 @@ class NavModel(nn.Module):
     #: every trainable parameter in exactly one role, checked by :meth:`parameter_role_map`.
     parameter_roles: ClassVar[ParameterRoles] = ParameterRoles()
     description: ClassVar[str] = ""
+    #: The :class:`ModelConfig` keys the model reads, each with the condition under which it does
+    #: (:mod:`mapless.models.settings`): a key it does not read is refused, not ignored.
+    settings: ClassVar[dict[str, str]] = {}
     #: Whether the model's reference training pays MJOLNIR's hierarchical (parent-object) reward
     #: (``env.parent_reward`` None follows it).
     trains_with_parent_reward: ClassVar[bool] = False

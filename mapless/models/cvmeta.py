@@ -48,6 +48,7 @@ from mapless.models.layers import (
 )
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import ADAPTIVE, GRAPH, RECURRENT
 
 #: Channels of the optional semantic-map embedding (``model.semantic_map``), 16 x 49 LSTM inputs.
 SEMANTIC_MAP_CHANNELS = 16
@@ -78,6 +79,20 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
             ),
             policy=("embed_action", "pointwise"),
         )
+    )
+    # Its own context rows gain the distance with or without the target row.
+    settings = (
+        RECURRENT
+        | GRAPH
+        | ADAPTIVE
+        | {
+            "dropout": "",
+            "target_context": "",
+            "context_distance": "",
+            "fusion_channels": "",
+            "gcn_hidden": "",
+            "semantic_map": "",
+        }
     )
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):

@@ -26,6 +26,7 @@ from mapless.models.layers import (
 )
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import ADAPTIVE, GRAPH, RECURRENT, SAVN_EMBEDDING
 
 GRAPH_EMBEDDING = 512
 
@@ -63,6 +64,7 @@ class ScenePriorsModel(SavnEmbeddingMixin, RecurrentNavModel):
     description = "Scene Priors: a3c embedding || GCN graph embedding -> LSTM(3648)"
     default_graph = "vg"
     parameter_roles = SAVN_EMBEDDING_ROLES | ParameterRoles(encoder=("graph",))
+    settings = RECURRENT | SAVN_EMBEDDING | GRAPH
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -91,6 +93,7 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
     default_inner_lr = 1e-4
     # The graph feeds only the critic, so the learned loss cannot reach it.
     parameter_roles = SAVN_EMBEDDING_ROLES | LEARNED_LOSS_ROLES | ParameterRoles(outer_only=("gve",))
+    settings = RECURRENT | SAVN_EMBEDDING | GRAPH | ADAPTIVE
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

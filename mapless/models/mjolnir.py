@@ -26,6 +26,7 @@ from mapless.models.layers import (
     target_row,
 )
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import GRAPH, RECURRENT, SAVN_EMBEDDING
 
 GCN_EMBEDDING = 512
 
@@ -64,6 +65,8 @@ class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
     parameter_roles = SAVN_EMBEDDING_ROLES | OBJECT_GCN_ROLES
+    # No SAVN image embedding: no dropout, and the target row enters as it is, without a distance.
+    settings = RECURRENT | GRAPH | {"target_context": "", "reference_extras": ""}
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
@@ -88,6 +91,7 @@ class MjolnirResnetModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
     trains_with_parent_reward = True  # MJOLNIR's --partial_reward
     default_graph = "vg"
     parameter_roles = SAVN_EMBEDDING_ROLES | OBJECT_GCN_ROLES  # the frozen resnet18 needs no role
+    settings = RECURRENT | SAVN_EMBEDDING | GRAPH
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

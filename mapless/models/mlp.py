@@ -17,6 +17,7 @@ from mapless.knowledge import Knowledge
 from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, ModelConfig, RecurrentNavModel
 from mapless.models.layers import target_row, target_similarity
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import RECURRENT
 
 WIDTH = 256
 
@@ -24,6 +25,7 @@ WIDTH = 256
 class MlpModel(RecurrentNavModel):
     description = "sanity baseline: MLP over the context rows + target row + GloVe cosines -> LSTM"
     parameter_roles = RECURRENT_CORE_ROLES | ParameterRoles(encoder=("layer1", "layer2"))
+    settings = RECURRENT
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

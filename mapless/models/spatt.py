@@ -20,6 +20,7 @@ from mapless.models.dropout import Dropout
 from mapless.models.layers import pointwise_conv, target_context_input, unit
 from mapless.models.learned_loss import LEARNED_LOSS_ROLES, LearnedLossMixin
 from mapless.models.roles import ParameterRoles
+from mapless.models.settings import ADAPTIVE, RECURRENT
 
 
 class SpattModel(LearnedLossMixin, RecurrentNavModel):
@@ -33,6 +34,8 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
             policy=("embed_action",),
         )
     )
+    # The target row enters the query as it is, without a distance.
+    settings = RECURRENT | ADAPTIVE | {"dropout": "", "target_context": ""}
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)

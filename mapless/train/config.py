@@ -17,6 +17,7 @@ from typing import Literal
 from mapless.config import ConfigError
 from mapless.models.base import ModelConfig
 from mapless.models.registry import MODELS
+from mapless.models.settings import unread_setting
 from mapless.scenes.catalogue import resolve_scenes
 from mapless.scenes.categories import targets
 from mapless.sim.config import SimConfig
@@ -436,6 +437,8 @@ class TrainConfig:
                 f"config key 'model.name': unknown model {self.model.name!r}; valid models: {', '.join(MODELS)}"
             )
         _require(self.model.name != "random", "model.name", "the random agent has nothing to train")
+        if (unread := unread_setting(MODELS, self.model)) is not None:
+            raise ConfigError(unread)
         _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
         _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
         _require(self.episodes > 0 or self.frames > 0, "episodes", "set a budget: episodes or frames > 0")
