@@ -1,5 +1,5 @@
-"""The documentation holds no path of the machine it was written on: a reader's clone has none of
-them (issue 45, point 7: a report's command copied into docs/ named the author's folders)."""
+"""What the repository says to its readers: no path of the machine a page was written on, no word
+about how the project was made, numbers tied to pages that name their commit, links that resolve."""
 
 from __future__ import annotations
 
@@ -9,24 +9,80 @@ import subprocess
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-#: Absolute paths under the usual roots of home and work folders (example paths under /tmp are fine).
-MACHINE_PATH = re.compile(r"(?<![\w.~-])/(?:work|home|root|Users|mnt|scratch|data)/[\w.-]+")
 
 
-def test_the_docs_name_no_folder_of_the_machine_they_were_written_on() -> None:
-    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
-    assert len(pages) > 10
-    found = [
-        f"{page.relative_to(REPO)}:{number}: {match}"
-        for page in pages
-        for number, line in enumerate(page.read_text().splitlines(), 1)
-        for match in [*MACHINE_PATH.findall(line), *([str(REPO)] if str(REPO) in line else [])]
+#: Absolute paths under the roots of machines' home, work, temporary and install folders (a
+#: rendered command once named its ``--reports`` folder under the temp root).
+MACHINE_PATH = re.compile(r"(?<![\w.~/-])/(?:tmp|work|home|root|Users|mnt|opt|scratch|data)/[\w.-]*")
+#: Words about how the project was made rather than what it is: the numbered working sittings it
+#: was written in, who wrote a file, a tracker entry given as the source of a claim.
+PROCESS_WORD = re.compile(r"(?i)\b(?:sessions?|sittings?|written\s+by|issues?\s+#?\d+)\b")
+#: Text files a reader of the repository meets: the README, the docs, the experiment configs and
+#: the package data.
+TEXT_SUFFIXES = {".md", ".txt", ".json", ".yaml", ".yml"}
+
+
+def reader_files(root: Path = REPO) -> list[Path]:
+    """The README, every page under docs/, every experiment config and every text file of the
+    package data, under ``root``."""
+    files = [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
+    for folder in (root / "experiments", root / "mapless" / "configs", root / "mapless" / "data"):
+        files += sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix in TEXT_SUFFIXES)
+    return [p for p in files if p.is_file()]
+
+
+def findings(files: list[Path], root: Path = REPO) -> list[str]:
+    """``path:line: match`` for every machine path or process word in ``files``."""
+    found = []
+    for path in files:
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            hits = [*MACHINE_PATH.findall(line), *PROCESS_WORD.findall(line)]
+            hits += [str(REPO)] if str(REPO) in line else []
+            found += [f"{path.relative_to(root)}:{number}: {hit}" for hit in hits]
+    return found
+
+
+def test_the_scan_finds_each_kind_of_word_and_path(tmp_path: Path) -> None:
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    (tmp_path / "mapless" / "data" / "priors").mkdir(parents=True)
+    (tmp_path / "README.md").write_text("See the twenty-first session.\nPlain text.\n")
+    (tmp_path / "docs" / "results" / "a.md").write_text(
+        "Command: `mapless reproduce table1 --reports /tmp/lanes/r`.\nAs issue 42 found.\n"
+    )
+    (tmp_path / "mapless" / "data" / "priors" / "x.json").write_text(
+        '{"source": "a copy, written by a helper"}'
+    )
+    (tmp_path / "mapless" / "data" / "x.bin").write_text("/home/someone")  # not a text file a reader meets
+    (tmp_path / "docs" / "b.md").write_text("python at /opt/torch/bin/python3; runs under /Users/me/x\n")
+    hits = findings(reader_files(tmp_path), tmp_path)
+    assert [h.split(": ", 1)[0] for h in hits] == [
+        "README.md:1",
+        "docs/b.md:1",
+        "docs/b.md:1",
+        "docs/results/a.md:1",
+        "docs/results/a.md:2",
+        "mapless/data/priors/x.json:1",
     ]
+    # Relative folders, a folder under the project and a URL's path are nobody's machine.
+    ok = tmp_path / "ok.md"
+    ok.write_text(
+        "--reports reports/r, ./tmp/x, runs/tmp/y, https://example.org/home/x, issues and sessions of torch\n"
+    )
+    assert findings([ok], tmp_path) == ["ok.md:1: sessions"]
+
+
+def test_the_repository_speaks_of_itself_only() -> None:
+    """No page, config or data file names a folder of the machine it was written on, the sittings
+    the project was made in, the author of a copy, or a tracker entry as a source: a reader has the
+    versions, the commits and docs/changelog.md."""
+    files = reader_files()
+    assert len(files) > 40
+    found = findings(files)
     assert not found, "\n".join(found)
 
 
 def test_every_promise_of_the_guarantees_names_tests_that_exist() -> None:
-    """docs/reference/guarantees.md lists each promise beside the tests that enforce it (issue 45)."""
+    """docs/reference/guarantees.md lists each promise beside the tests that enforce it."""
     text = (REPO / "docs" / "reference" / "guarantees.md").read_text()
     promises = re.findall(r"(?ms)^- .*?(?=^- |^\n|^## |\Z)", text)
     assert len(promises) > 30
@@ -47,7 +103,7 @@ REMOVED_SCRIPT = re.compile(r"\b([0-9a-f]{7,40}):bench/([\w.-]+\.(?:py|sh))")
 
 def test_every_cited_bench_script_exists_or_its_citation_says_where_it_went() -> None:
     """bench/ keeps the lasting benchmarks; a one-off study's script is removed once its findings
-    are in the docs (issue 44). A page or module that still cites a removed script must say so and
+    are in the docs. A page or module that still cites a removed script must say so and
     name a commit that has it (``git show COMMIT:bench/NAME``), so the citation never dangles."""
     pages = [
         REPO / "README.md",
@@ -75,3 +131,84 @@ def test_every_cited_bench_script_exists_or_its_citation_says_where_it_went() ->
                 ["git", "-C", str(REPO), "cat-file", "-e", f"{commit}:bench/{name}"], capture_output=True
             )
             assert found.returncode == 0, f"commit {commit} has no bench/{name}"
+
+
+def test_the_reference_pages_match_the_code_they_are_generated_from() -> None:
+    """docs/reference/cli.md and config.md are renderings of the parsers and of TrainConfig: a flag,
+    help text or default changed without regenerating them fails here."""
+    from mapless.cli.docs import PAGES
+
+    for name, render in PAGES.items():
+        page = REPO / "docs" / "reference" / f"{name}.md"
+        assert page.read_text() == render(), (
+            f"regenerate: python -m mapless.cli.docs {name} > {page.relative_to(REPO)}"
+        )
+
+
+def test_the_cli_page_has_a_section_per_command_with_its_flags() -> None:
+    from mapless.cli.docs import render_cli
+
+    page = render_cli()
+    for command in (
+        "## `mapless train`",
+        "## `mapless reproduce`",
+        "## `mapless scenes build`",
+        "## `mapless eval`",
+    ):
+        assert command in page
+    assert "--budget" in page.split("## `mapless reproduce`")[1].split("\n## ")[0]
+
+
+#: The README's results table lies between these markers, so it can be replaced by a new rendering.
+RESULTS_BLOCK = re.compile(r"<!-- results:table1 begin -->(.*?)<!-- results:table1 end -->", re.S)
+NUMBER = re.compile(r"[−+-]?\d+\.\d+")
+COMMIT = re.compile(r"\bcommit `?[0-9a-f]{7,40}\b")
+
+
+def results_sections(root: Path = REPO) -> list[str]:
+    """Each section (from a heading to the next of the same or a higher level) of docs/results/,
+    with the text of its subsections."""
+    sections = []
+    for page in sorted((root / "docs" / "results").glob("*.md")):
+        lines = page.read_text().splitlines()
+        heads = [
+            (i, len(line) - len(line.lstrip("#")))
+            for i, line in enumerate(lines)
+            if re.match(r"#{2,4} ", line)
+        ]
+        for n, (start, level) in enumerate(heads):
+            end = next((i for i, lv in heads[n + 1 :] if lv <= level), len(lines))
+            sections.append("\n".join(lines[start:end]))
+    return sections
+
+
+def untied_numbers(readme: str, sections: list[str]) -> list[str]:
+    """The numbers of the README's results table that no single results section with a commit holds
+    all together (empty when one does)."""
+    block = RESULTS_BLOCK.search(readme)
+    assert block, "the README's results table is not between its markers"
+    rows = [
+        line for line in block.group(1).splitlines() if line.startswith("|") and not line.startswith("|--")
+    ]
+    numbers = [n.replace("−", "-").lstrip("+") for row in rows[1:] for n in NUMBER.findall(row)]
+    assert numbers
+    best: list[str] = numbers
+    for section in (s for s in sections if COMMIT.search(s)):
+        present = {n.replace("−", "-").lstrip("+") for n in NUMBER.findall(section)}
+        missing = [n for n in numbers if n not in present]
+        best = min(best, missing, key=len)
+    return best
+
+
+def test_every_number_of_the_readme_table_is_in_a_results_section_with_a_commit() -> None:
+    assert not untied_numbers((REPO / "README.md").read_text(), results_sections())
+
+
+def test_a_readme_number_without_a_committed_section_is_found(tmp_path: Path) -> None:
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    readme = "<!-- results:table1 begin -->\n| model | SR |\n|---|---|\n| a3c | 46.8 [43.5, 49.8] |\n<!-- results:table1 end -->"
+    page = tmp_path / "docs" / "results" / "t.md"
+    page.write_text("## Tied\n\n| a3c | 46.8 [43.5, 49.8] |\n\nMade by mapless 0.1.0, commit 4eaaccb508f2.\n")
+    assert untied_numbers(readme, results_sections(tmp_path)) == []
+    page.write_text("## No commit\n\n| a3c | 46.8 [43.5, 49.8] |\n\n## Another\n\ncommit 4eaaccb, 46.8\n")
+    assert untied_numbers(readme, results_sections(tmp_path)) == ["43.5", "49.8"]

@@ -57,7 +57,7 @@ class AgentSpec:
     called as ``function(batch_size, bf16)``. ``adapt``: an adaptive model's test-time adaptation;
     False runs its trained θ_0 as a plain recurrent policy (the cvmeta ablation's row a).
     ``inner_lr``: an adaptive model's test-time inner learning rate instead of its trained one (how
-    far adaptation moves the policy; docs/learning.md)."""
+    far adaptation moves the policy; docs/results/learning.md)."""
 
     kind: str = "model"
     model: dict = field(default_factory=dict)

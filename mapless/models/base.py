@@ -111,7 +111,7 @@ class ModelConfig:
         what a depth reading at each box adds. cvmeta: every category's context vector and its
         target row; a3c, savn, sp, gve, mjolnir_r: the target row (with ``target_context``). Not in
         any paper, whose boxes carry no depth: cvmeta's false Dones are `Done`s with the target in
-        the frame beyond the success rule's 1.5 m (docs/learning.md).
+        the frame beyond the success rule's 1.5 m (docs/results/learning.md).
     gcn_hidden: width of cvmeta's GCN layers before its 64-wide output; None = the node input's width
         (C + 300 = 401, MJOLNIR's object GCN). An ablation knob: the GCN is the one part of cvmeta
         that savn does not have (docs/guide/training.md, "Why cvmeta trains slower than savn").
