@@ -5,12 +5,20 @@ Registered as ``mapless/ObjectNav-v0``. Observation space (docs/guide/simulator.
 * ``context`` Box float32 ``[C, 4]``: per category ``[in view, x_c, y_c, union-box area]``
 * ``features`` Box float32 ``[C + 3, 7, 7]``: semantic feature map
 * ``target_embedding`` Box float32 ``[300]``: GloVe vector of the target
-* ``target_index`` Box int64 ``[]``: the target's row in the category set (-1 if none)
+* ``target_index`` Box int64 ``[1]``: the target's row in the category set (-1 if none); one
+  element, not a 0-d array, because stable-baselines3's policies refuse 0-d observations
+* ``context_distance`` Box float32 ``[C]``: per category, the distance to its nearest in-view instance
 
 Actions: Discrete(6) = MoveAhead, RotateLeft, RotateRight, LookUp, LookDown, Done. The episode
 terminates on ``Done`` (success iff a target instance is visible) and is truncated at the step
-limit. ``info`` carries ``success``, ``optimal_length``, ``visited`` (pose ids so far),
-``failed_action`` and ``pose`` (pose id; ``env.data.key(pose)`` gives the SAVN pose key).
+limit. ``info`` carries ``success``, ``optimal_length``, ``visited`` (a tuple of the pose ids so
+far), ``failed_action``, ``pose`` (pose id; ``env.data.key(pose)`` gives the SAVN pose key) and
+``mapless_episode`` (the :class:`Episode` being played). The names keep off ``info["episode"]``,
+which gymnasium's ``RecordEpisodeStatistics`` and stable-baselines3's ``Monitor`` write their
+episode statistics into, and every value is immutable, so that a stored ``info`` never changes.
+
+``render_mode="rgb_array"``: :meth:`NavEnv.render` returns a top-down frame of the room, the agent,
+its path and the target instances (:class:`~mapless.sim.pictures.TopDownFrame`).
 
 The task rules live in one place, :class:`~mapless.sim.vector.BatchedNavEnv`: this class is a thin
 adapter that plays slot 0 of a batched environment of size 1 over the current episode's scene, and
@@ -29,15 +37,14 @@ from mapless.actions import ACTIONS
 from mapless.errors import MaplessError
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
+from mapless.sim.pictures import TopDownFrame
 from mapless.sim.scene_data import SceneData
 from mapless.sim.task import RewardConfig, TargetFields, resolve_target_fields
 from mapless.sim.vector import OBSERVATION_KEYS, BatchedNavEnv
 
-ENV_ID = "mapless/ObjectNav-v0"
-
 
 class NavEnv(gym.Env):
-    metadata: ClassVar[dict] = {"render_modes": []}
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(
         self,
@@ -49,9 +56,18 @@ class NavEnv(gym.Env):
         mode: str = "train",
         max_steps: int | None = None,
         category_set: str | None = None,
+        render_mode: str | None = None,
+        render_size: int = 256,
     ):
         if episodes is None and sampler is None:
             raise MaplessError("NavEnv needs a list of episodes or an episode sampler")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise MaplessError(
+                f"render_mode {render_mode!r} is not one of {', '.join(self.metadata['render_modes'])}"
+            )
+        self.render_mode = render_mode
+        self.render_size = render_size
+        self._frames: dict[str, TopDownFrame] = {}
         self.library = library
         self.episodes = episodes
         self.sampler = sampler
@@ -66,14 +82,14 @@ class NavEnv(gym.Env):
                 "context": spaces.Box(0.0, 1.0, (n_cat, 4), np.float32),
                 "features": spaces.Box(0.0, 1.0, (n_cat + 3, 7, 7), np.float32),
                 "target_embedding": spaces.Box(-np.inf, np.inf, (300,), np.float32),
-                "target_index": spaces.Box(-1, n_cat - 1, (), np.int64),
+                "target_index": spaces.Box(-1, n_cat - 1, (1,), np.int64),
                 "context_distance": spaces.Box(0.0, np.inf, (n_cat,), np.float32),
             }
         )
         self._next_fixed = 0
         #: the batched environment of the current episode's scene (rebuilt when the scene changes)
         self.batched: BatchedNavEnv | None = None
-        self.visited: list[int] = []
+        self.visited: tuple[int, ...] = ()
 
     # -- the current episode, read from the batched environment's slot 0 ------------------------
     @property
@@ -113,6 +129,12 @@ class NavEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        if seed is not None:
+            # A seed starts the episode stream over, as gymnasium promises: the fixed list from its
+            # first episode, the sampler from the start of its room cycle.
+            self._next_fixed = 0
+            if self.sampler is not None:
+                self.sampler.position = 0
         episode = self._select_episode(options)
         if self.batched is None or episode.scene not in self.batched.scene_offset:
             self.batched = BatchedNavEnv(
@@ -125,20 +147,34 @@ class NavEnv(gym.Env):
                 max_steps=self.fixed_max_steps,
             )
         self.batched.reset([0], [episode])
-        self.visited = [self.pose]
+        self.visited = (self.pose,)
         return self._observation(), self._info(success=False, failed=False)
 
     def step(self, action: int):
         result = self.batched.step(np.array([int(action)]))
         terminated = bool(result.terminated[0])
         if not terminated:
-            self.visited.append(self.pose)
+            self.visited = (*self.visited, self.pose)
         info = self._info(success=bool(result.success[0]), failed=bool(result.failed_action[0]))
         return self._observation(), float(result.reward[0]), terminated, bool(result.truncated[0]), info
 
+    def render(self) -> np.ndarray | None:
+        """The current step seen from above (``render_mode="rgb_array"``), ``[H, W, 3]`` uint8."""
+        if self.render_mode is None:
+            gym.logger.warn(
+                'NavEnv.render() without a render_mode: make the env with render_mode="rgb_array"'
+            )
+            return None
+        scene = self.episode.scene
+        if scene not in self._frames:
+            self._frames[scene] = TopDownFrame(self.data, self.render_size)
+        goal = self.data.goal_instances(self.episode.target, self.episode.target_ids)
+        return self._frames[scene].draw(self.pose, goal, self.visited)
+
     def _observation(self) -> dict:
-        # [0, ...] keeps a 0-d array (not a numpy scalar) for target_index, as its space says.
-        return {key: value[0, ...] for key, value in self.batched.observe(OBSERVATION_KEYS).items()}
+        observation = {key: value[0] for key, value in self.batched.observe(OBSERVATION_KEYS).items()}
+        observation["target_index"] = observation["target_index"].reshape(1)
+        return observation
 
     def _info(self, success: bool, failed: bool) -> dict:
         return {
@@ -147,8 +183,5 @@ class NavEnv(gym.Env):
             "visited": self.visited,
             "failed_action": failed,
             "pose": self.pose,
-            "episode": self.episode,
+            "mapless_episode": self.episode,
         }
-
-
-gym.register(id=ENV_ID, entry_point="mapless.sim.env:NavEnv")
