@@ -158,10 +158,10 @@ def test_cli_scrape(tmp_path, monkeypatch, capsys):
             str(tmp_path),
             "--format",
             "mjolnir",
-            "--visibility-distance",
-            "1.5",
-            "--field-of-view",
-            "80",
+            "--sim",
+            "visibility_distance=1.5",
+            "--sim",
+            "horizontal_fov=80",
             "--platform",
             "CloudRendering",
         ]
@@ -171,6 +171,14 @@ def test_cli_scrape(tmp_path, monkeypatch, capsys):
     assert made[0].platform == "CloudRendering"
     assert load_offline_scene(tmp_path / "FloorPlan301").room_type == "bedroom"
     assert "FloorPlan5: scraped" in capsys.readouterr().out
-    args = parser.parse_args(["thor", "scrape", "FloorPlan5", "--out", str(tmp_path), "--horizons", "0,x"])
-    with pytest.raises(MaplessError, match="--horizons"):
+    # The old spellings still work, each with a note naming the --sim setting it stands for.
+    old = ["--visibility-distance", "1.5", "--horizons", "0,x", "--field-of-view", "80"]
+    args = parser.parse_args(["thor", "scrape", "FloorPlan5", "--out", str(tmp_path), *old])
+    notes = capsys.readouterr().err.splitlines()
+    assert notes == [
+        "mapless: note: --visibility-distance is deprecated; write --sim visibility_distance=1.5",
+        "mapless: note: --horizons is deprecated; write --sim horizons=[0,x]",
+        "mapless: note: --field-of-view is deprecated; write --sim horizontal_fov=80",
+    ]
+    with pytest.raises(MaplessError, match=r"horizons\[1\]': expected int, got 'x'"):
         args.func(args)

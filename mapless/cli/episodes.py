@@ -8,7 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import add_command, seed_int, sim_config_from
+from mapless.cli.common import (
+    TARGET_SET_HELP,
+    DeprecatedAlias,
+    add_command,
+    positive_int,
+    seed_int,
+    sim_config_from,
+)
 from mapless.episodes import evalsets
 from mapless.errors import MaplessError
 
@@ -25,9 +32,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="(re)generate evaluation episode files deterministically from a seed",
     )
     make.add_argument(
-        "--splits",
+        "--split",
+        dest="splits",
         default=",".join(evalsets.EVAL_SPLITS),
-        help="val, test, paper (the standard and paper protocols, success within 1.0 m) and ref_val, "
+        help="one split or several, comma-separated: val, test, paper (the standard and paper protocols, success within 1.0 m) and ref_val, "
         "ref_test (the reference protocol, 1.5 m); each is made under its protocol's success rule",
     )
     make.add_argument(
@@ -38,9 +46,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "mapped onto the scenes (--per-room and --seed do not apply; with their mapping report) and "
         "whose other splits are sampled over its classes",
     )
-    make.add_argument("--per-room", type=int, default=250)
-    make.add_argument("--seed", type=seed_int, default=0)
-    make.add_argument("--out", type=Path, default=Path("episodes"))
+    make.add_argument("--splits", action=DeprecatedAlias, replacement="--split")
+    make.add_argument("--per-room", type=positive_int, default=250, help="episodes per room type")
+    make.add_argument("--seed", type=seed_int, default=0, help="sampling seed (>= 0)")
+    make.add_argument(
+        "--out",
+        type=Path,
+        default=Path("episodes"),
+        help="folder of the episode files (SPLIT_TARGETSET.json.gz)",
+    )
     make.add_argument(
         "--check", action="store_true", help="also compare with the built-in files byte for byte"
     )
@@ -48,16 +62,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--layouts",
         help="SOURCE:PER_SCENE: a layout-shift set, each episode on one of its floor plan's first PER_SCENE "
         "variants from SOURCE (gen: generated arrangements; rearrange2023; or an arrangement file in the "
-        "rearrangement dataset's format), e.g. --splits test --layouts gen:3 (docs/guide/simulator.md)",
+        "rearrangement dataset's format), e.g. --split test --layouts gen:3 (default: the default layouts) (docs/guide/simulator.md)",
     )
 
     show = add_command(
         sub, "show", _show, sim=True, help="summary of an episode set, or a picture of one episode"
     )
     show.add_argument("source", help="a split name (built-in set) or an episode file")
-    show.add_argument("--target-set", default="mjolnir22")
-    show.add_argument("--index", type=int, help="draw this episode (needs --out)")
-    show.add_argument("--out", type=Path)
+    show.add_argument("--target-set", default="mjolnir22", help=f"{TARGET_SET_HELP} (of a built-in split)")
+    show.add_argument("--index", type=int, help="draw this episode (needs --out; default: draw none)")
+    show.add_argument(
+        "--out", type=Path, help="PNG file of the episode drawn with --index (required with it)"
+    )
 
 
 def _make(args: argparse.Namespace) -> int:

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import shlex
 import sys
 from pathlib import Path
 
-from mapless.cli.common import add_command, positive_int, seed_int
+from mapless.cli.common import add_cache_argument, add_command, positive_int, seed_int
 from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
 from mapless.experiments.config import BUDGETS, EXPERIMENTS
@@ -27,7 +28,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "model", help="run folder, model file (.pt), or 'random' / 'oracle' (untrained baselines)"
     )
-    ev.add_argument("--split", choices=("val", "test", "paper"), default="val")
+    ev.add_argument(
+        "--split",
+        choices=("val", "test", "paper"),
+        default="test",
+        help="the protocol's fixed episode set: val (x21-x25 under the standard protocol), test "
+        "(x26-x30) or paper (x21-x30, the paper protocol)",
+    )
     ev.add_argument(
         "--protocol",
         choices=tuple(PROTOCOLS),
@@ -40,17 +47,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--episodes",
         type=Path,
         help="episode file instead of the built-in set of --split: a mapless set (.json.gz), or a published "
-        "SAVN/MJOLNIR/HOZ pickle (.pkl), mapped onto the scenes as `mapless interop episodes-import` does",
+        "SAVN/MJOLNIR/HOZ pickle (.pkl), mapped onto the scenes as `mapless interop episodes-import` does "
+        "(default: the built-in set)",
     )
-    ev.add_argument("--per-room", type=positive_int, help="only the first N episodes of each room type")
+    ev.add_argument(
+        "--per-room",
+        type=positive_int,
+        help="only the first N episodes of each room type (default: every episode)",
+    )
     ev.add_argument("--select", action="store_true",
                     help="run folders: evaluate every checkpoint on the protocol's val set and report the best by SR "
                          "(ties SPL) on --split (--split paper: select and report on x21-x30, the paper's protocol)")  # fmt: skip
     ev.add_argument(
-        "--offline-dir", type=Path, help="evaluate on a SAVN/MJOLNIR offline data root (docs/guide/interop.md)"
+        "--offline-dir",
+        type=Path,
+        help="evaluate on a SAVN/MJOLNIR offline data root, docs/guide/interop.md (default: the run's "
+        "scenes, the built-in ones unless it trained offline)",
     )
-    ev.add_argument("--workers", type=positive_int, default=2)
-    ev.add_argument("--batch-size", type=positive_int, default=32)
+    ev.add_argument("--workers", type=positive_int, default=2, help="evaluation processes")
+    ev.add_argument(
+        "--batch-size", type=positive_int, default=32, help="episodes stepped together per process"
+    )
     ev.add_argument("--seed", type=seed_int, default=0, help="action-sampling seed (>= 0)")
     ev.add_argument(
         "--greedy", action="store_true", help="argmax actions instead of sampling (the references sample)"
@@ -70,7 +87,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--inner-lr",
         type=float,
-        help="adaptive models: the test-time inner learning rate instead of the trained one (give another --out)",
+        help="adaptive models: the test-time inner learning rate instead of the trained one (give another "
+        "--out; default: the trained one)",
     )
     ev.add_argument(
         "--out",
@@ -78,6 +96,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
         "reports/eval/<model> for random and oracle)",
     )
+    ev.add_argument(
+        "--render",
+        type=positive_int,
+        metavar="N",
+        help="also draw the first N episodes: OUT/render/<episode>.png (the top-down trajectory) and "
+        ".gif (its steps: agent, view cone, target, sightings, Done); default: draw none",
+    )
+    add_cache_argument(ev)
 
     compare = add_command(
         subparsers,
@@ -100,9 +126,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "already finished is reused and an interrupted one resumes: the same command goes on where a "
         "stopped or killed one ended.",
     )
-    rep.add_argument("experiment", choices=EXPERIMENTS)
-    rep.add_argument("--budget", choices=BUDGETS, default="smoke")
-    rep.add_argument("--seeds", type=positive_int, help="training seeds per run (overrides the config)")
+    rep.add_argument("experiment", choices=EXPERIMENTS, help="the experiment to reproduce")
+    rep.add_argument(
+        "--budget",
+        choices=BUDGETS,
+        default="small",
+        help="training budget: smoke (a check that everything runs, minutes), small (the README's "
+        "tables, about an hour), medium, long or full (the paper's)",
+    )
+    rep.add_argument(
+        "--seeds", type=positive_int, help="training seeds per run (default: the config's seeds)"
+    )
     rep.add_argument(
         "--config",
         type=Path,
@@ -118,7 +152,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "HOZ episodes; its runs train under the 1.5 m rule on their classes (hoz22, unless "
         "train.env.target_set says otherwise) and its report goes to reports/EXPERIMENT-reference",
     )
-    rep.add_argument("--reports", type=Path, default=Path("reports"))
+    rep.add_argument(
+        "--reports", type=Path, default=Path("reports"), help="parent of the report folder EXPERIMENT/"
+    )
+    add_cache_argument(rep)
     rep.add_argument(
         "--jobs",
         type=positive_int,
@@ -212,6 +249,8 @@ def _eval(args: argparse.Namespace) -> int:
     # The protocol's success rule, whatever rule the model was trained under (it sees the same
     # observations under both; only success, Done and the optimal lengths change).
     library = dataclasses.replace(library, sim=protocol.sim(library.sim))
+    if args.cache_dir is not None:
+        library = dataclasses.replace(library, cache_dir=str(args.cache_dir))
     meta: dict = {"split": name, "protocol": protocol.name}
     sets = {"per_room": args.per_room, "library": library, "target_set": target_set}
     if args.episodes is not None and args.episodes.suffix == ".pkl":
@@ -271,10 +310,25 @@ def _eval(args: argparse.Namespace) -> int:
     )
     _, text = write_report_files(record, text, out / name)
     print(text)
+    if args.render:
+        _render(results[: args.render], library, label, out / "render")
     overall = aggregate(results)
     print(f"{len(results)} episodes, {steps} steps in {seconds:.1f} s ({steps / max(seconds, 1e-9):.0f} steps/s); "
           f"SR {overall['success']:.3f}; written to {out}", file=sys.stderr)  # fmt: skip
     return 0
+
+
+def _render(results: list, library, label: str, folder: Path) -> None:
+    """Each result's top-down trajectory (PNG) and its steps (GIF), named after its index, scene and
+    target."""
+    from mapless.evaluate.figures import steps_gif, trajectory_figure
+
+    scenes = library.build()
+    for result in results:
+        stem = folder / f"{result.index:04d}_{result.scene}_{result.target}"
+        trajectory_figure({label: result}, scenes, stem.with_suffix(".png"), sim=library.sim)
+        frames = steps_gif(result, scenes, stem.with_suffix(".gif"), sim=library.sim, label=label)
+        print(f"wrote {stem}.png and .gif ({frames} frames)", file=sys.stderr)
 
 
 def _set_name(episodes: Path) -> str:
@@ -358,6 +412,10 @@ def _published_episodes(path: Path, library, per_room: int | None, meta: dict) -
 def _reproduce(args: argparse.Namespace) -> int:
     from mapless.experiments import load_experiment, reproduce
 
+    if args.cache_dir is not None:
+        # The variable, not train.env.cache_dir: the runs' folders are named after a hash of their
+        # training config, which the cache's place must not change; the run processes inherit it.
+        os.environ["MAPLESS_CACHE"] = str(args.cache_dir)
     overrides = [*args.set, *([f"eval.protocol={args.protocol}"] if args.protocol else [])]
     config = load_experiment(args.experiment, args.budget, args.config, overrides, args.seeds)
     # The report records the exact command (overrides included) that produced it.

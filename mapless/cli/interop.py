@@ -17,10 +17,21 @@ import argparse
 import time
 from pathlib import Path
 
-from mapless.cli.common import SCENES_HELP, add_category_set_argument, add_command, sim_config_from
+from mapless.cli.common import (
+    SCENES_HELP,
+    DeprecatedAlias,
+    add_category_set_argument,
+    add_command,
+    add_sim_arguments,
+    sim_config_from,
+)
 from mapless.errors import MaplessError
 from mapless.offline import offline_library
 from mapless.offline.format import FORMATS
+
+FORMAT_HELP = (
+    "offline folder layout: savn, or mjolnir (features without the batch axis, plus objects_bb.json)"
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers, "export", _export, sim=True, help="write built-in scenes as SAVN/MJOLNIR offline folders"
     )
     export.add_argument("scenes", help=SCENES_HELP)
-    export.add_argument("--format", choices=FORMATS, default="savn")
+    export.add_argument("--format", choices=FORMATS, default="savn", help=FORMAT_HELP)
     export.add_argument("--out", type=Path, required=True, help="offline data root (one folder per scene)")
     export.add_argument("--no-compression", action="store_true", help="write the feature HDF5 uncompressed")
 
@@ -38,15 +49,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         thor_sub, "scrape", _scrape, help="breadth-first search over poses into offline folders"
     )
     scrape.add_argument("scenes", help=SCENES_HELP)
-    scrape.add_argument("--out", type=Path, required=True)
-    scrape.add_argument("--format", choices=FORMATS, default="savn")
-    scrape.add_argument("--visibility-distance", type=float, default=1.0, help="m (default 1.0)")
-    scrape.add_argument("--horizons", default="0,30", help="camera horizons, comma-separated (default 0,30)")
-    scrape.add_argument("--field-of-view", type=float, default=90.0)
+    scrape.add_argument("--out", type=Path, required=True, help="offline data root (one folder per scene)")
+    scrape.add_argument("--format", choices=FORMATS, default="savn", help=FORMAT_HELP)
+    add_sim_arguments(scrape, cache=False)
+    # Old spellings of --sim visibility_distance=M, --sim horizons=[0,30] and --sim horizontal_fov=90.
+    scrape.add_argument(
+        "--visibility-distance", action=DeprecatedAlias, replacement="--sim", sim_key="visibility_distance"
+    )
+    scrape.add_argument(
+        "--horizons",
+        action=DeprecatedAlias,
+        replacement="--sim",
+        sim_key="horizons",
+        to_yaml=lambda text: f"[{text}]",
+    )
+    scrape.add_argument(
+        "--field-of-view", action=DeprecatedAlias, replacement="--sim", sim_key="horizontal_fov"
+    )
     add_category_set_argument(scrape)
-    scrape.add_argument("--platform", help="ai2thor platform, e.g. CloudRendering for headless Vulkan")
-    scrape.add_argument("--commit-id", help="pin the AI2-THOR build")
-    scrape.add_argument("--local-executable-path", help="use an already downloaded AI2-THOR build")
+    scrape.add_argument(
+        "--platform",
+        help="ai2thor platform, e.g. CloudRendering for headless Vulkan (default: ai2thor's choice)",
+    )
+    scrape.add_argument("--commit-id", help="pin the AI2-THOR build (default: ai2thor's own)")
+    scrape.add_argument(
+        "--local-executable-path",
+        help="use an already downloaded AI2-THOR build (default: ai2thor downloads its build)",
+    )
     scrape.add_argument("--images", action="store_true", help="also write images.hdf5 with the RGB frames")
 
     interop = subparsers.add_parser("interop", help="check offline folders, import/export episode pickles")
@@ -54,7 +83,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check = add_command(sub, "check", _check, help="load offline scene folders and summarise them")
     check.add_argument("folders", nargs="+", type=Path, help="scene folders, or roots holding them")
     add_category_set_argument(check)
-    check.add_argument("--visible-file", default="visible_object_map.json")
+    check.add_argument(
+        "--visible-file",
+        default="visible_object_map.json",
+        help="name of the visible-object map in each scene folder",
+    )
     check.add_argument("--no-features", action="store_true", help="skip reading the feature HDF5")
 
     imp = add_command(
@@ -70,7 +103,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     imp.add_argument("files", nargs="+", metavar="FILE", help="episode pickles (.pkl, .pkl.gz), or hoz22")
     imp.add_argument(
-        "--out", type=Path, help="mapless episode file to write (.json.gz), every file's episodes"
+        "--out",
+        type=Path,
+        help="mapless episode file to write (.json.gz), every file's episodes (default: report only)",
     )
     imp.add_argument("--max-target-distance", type=float, default=0.5, help="m, horizontal (default 0.5)")
     imp.add_argument("--max-start-distance", type=float, default=0.36, help="m (default 0.36)")
@@ -80,7 +115,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--offline-dir",
         type=Path,
         help="map onto the scenes of this SAVN/MJOLNIR offline root instead of the built-in ones "
-        "(for evaluation with `mapless eval --offline-dir`: object ids then match the root's)",
+        "(for evaluation with `mapless eval --offline-dir`: object ids then match the root's; "
+        "default: the built-in scenes)",
     )
 
     exp = add_command(
@@ -97,7 +133,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "source",
         help="a built-in split (val, test, paper, ref_val, ref_test) or a mapless episode file",
     )
-    exp.add_argument("--format", choices=FORMATS, default="savn")
+    exp.add_argument("--format", choices=FORMATS, default="savn", help=FORMAT_HELP)
     exp.add_argument(
         "--out",
         type=Path,
@@ -116,7 +152,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="packaged GloVe table: mjolnir101 (MJOLNIR's v1 table) or all_types",
     )
     exp.add_argument(
-        "--glove", type=Path, help="HDF5 with one GloVe vector per type (e.g. SAVN's glove_map300d.hdf5)"
+        "--glove",
+        type=Path,
+        help="HDF5 with one GloVe vector per type, e.g. SAVN's glove_map300d.hdf5 (default: --glove-set)",
     )
 
 
@@ -141,25 +179,18 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _scrape(args: argparse.Namespace) -> int:
+    from mapless.config import load_config
     from mapless.scenes.catalogue import resolve_scenes
     from mapless.sim.config import SimConfig
     from mapless.thor import ThorConfig, make_controller, scrape
 
-    try:
-        horizons = tuple(int(h) for h in args.horizons.split(","))
-    except ValueError:
-        raise MaplessError(f"--horizons {args.horizons!r} must be integers separated by commas") from None
     extra = {
         k: v
         for k, v in (("commit_id", args.commit_id), ("local_executable_path", args.local_executable_path))
         if v
     }
-    sim = SimConfig(
-        visibility_distance=args.visibility_distance,
-        horizons=horizons,
-        horizontal_fov=args.field_of_view,
-        category_set=args.category_set,
-    )
+    # --sim names every setting; --category-set stands for --sim category_set=..., which wins if given.
+    sim = load_config(SimConfig, args.sim_config, [f"category_set={args.category_set}", *args.sim])
     config = ThorConfig(sim, platform=args.platform, extra=extra)
     scenes = resolve_scenes(args.scenes)
     controller = make_controller(scenes[0], config)

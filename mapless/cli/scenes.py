@@ -8,7 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.cli.common import SCENES_HELP, add_command, parse_pose, sim_config_from
+from mapless.cli.common import (
+    SCENES_HELP,
+    TARGET_SET_HELP,
+    add_command,
+    parse_pose,
+    positive_int,
+    sim_config_from,
+)
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.files import unwritable
 from mapless.scenes.catalogue import ROOM_TYPES, resolve_scenes, scene_names, split_of
@@ -25,23 +32,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         sub, "build", _build, sim=True, help="precompute and cache scenes (all 120 by default)"
     )
     build.add_argument("scenes", nargs="?", default="all", help=SCENES_HELP)
-    build.add_argument("--workers", type=int, default=2)
+    build.add_argument("--workers", type=positive_int, default=2, help="scenes built in parallel processes")
     build.add_argument("--rebuild", action="store_true", help="ignore existing cache entries")
 
     listing = add_command(sub, "list", _list, help="scenes with room type, split, object and grid counts")
-    listing.add_argument("scenes", nargs="?", default="all")
+    listing.add_argument("scenes", nargs="?", default="all", help=SCENES_HELP)
 
     show = add_command(
         sub, "show", _show, sim=True, help="top-down map and egocentric view of a scene as a PNG"
     )
-    show.add_argument("scene")
+    show.add_argument("scene", help="a FloorPlan name, e.g. FloorPlan1")
     show.add_argument(
         "--pose",
         type=parse_pose,
         help="x,z,yaw,horizon; write --pose=-1.25,0.5,90,0 when x is negative (default: first reachable pose)",
     )
-    show.add_argument("--target", action="append", default=[], help="object type to highlight")
-    show.add_argument("--out", type=Path, required=True)
+    show.add_argument("--target", action="append", default=[], help="object type to highlight (repeatable)")
+    show.add_argument("--out", type=Path, required=True, help="PNG file to write")
 
     check = add_command(
         sub,
@@ -51,8 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="per scene: poses, pose-graph components, reachable targets, share of poses seeing an "
         "object; then every target instance no pose can see, under each protocol's success rule",
     )
-    check.add_argument("scenes", nargs="?", default="all")
-    check.add_argument("--target-set", default="mjolnir22")
+    check.add_argument("scenes", nargs="?", default="all", help=SCENES_HELP)
+    check.add_argument("--target-set", default="mjolnir22", help=TARGET_SET_HELP)
     check.add_argument(
         "--protocols",
         default="standard,reference",
@@ -69,12 +76,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     variants.add_argument(
         "source", nargs="?", default="rearrange2023", help="rearrange2023 or an arrangement file"
     )
-    variants.add_argument("--phase", choices=("target", "start"), default="target")
+    variants.add_argument(
+        "--phase",
+        choices=("target", "start"),
+        default="target",
+        help="which arrangement of each rearrangement episode: its goal (target) or its shuffled one (start)",
+    )
 
     target_parser = add_command(
         sub, "targets", _targets, help="how many scenes of each split contain each target"
     )
-    target_parser.add_argument("--target-set", default="mjolnir22")
+    target_parser.add_argument("--target-set", default="mjolnir22", help=TARGET_SET_HELP)
 
 
 def _build(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from mapless.cli.common import add_command
+from mapless.cli.common import add_cache_argument, add_command, add_sim_override_argument
 from mapless.config import apply_overrides, read_mapping
 from mapless.configs import train_config_file
 from mapless.episodes.protocols import PROTOCOLS
@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="CONFIG",
         help="a YAML training config: a path when it contains '/' or ends in .yaml (my/run.yaml, "
         "./train_ppo.yaml), otherwise the name of a shipped one (train_ppo, train_smoke, train_cvmeta, "
-        "...: `mapless train train_ppo --set model.name=a3c`)",
+        "...: `mapless train train_ppo --set model.name=a3c`; default: none, required unless --resume)",
     )
     parser.add_argument(
         "--set",
@@ -34,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--resume",
         type=Path,
         metavar="RUN_DIR",
-        help="continue a run from its last checkpoint (--set may extend the budget)",
+        help="continue a run from its last checkpoint (--set may extend the budget; default: a new run "
+        "from CONFIG)",
     )
     parser.add_argument(
         "--run-dir", type=Path, help="run folder (default: runs/<config>__<model>__<mode>__s<seed>__<time>)"
@@ -42,14 +43,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--runs-root", type=Path, default=Path("runs"), help="parent of the default run folder"
     )
-    parser.add_argument("--device", help="shortcut for --set device=...")
+    parser.add_argument("--device", help="shortcut for --set device=... (default: the config's, cpu)")
+    add_sim_override_argument(parser)
+    add_cache_argument(parser)
     parser.add_argument(
         "--protocol",
         choices=tuple(PROTOCOLS),
         help="train for an evaluation protocol's success rule and episodes' classes: reference = within "
-        "1.5 m, as the SAVN/MJOLNIR data (--set env.sim.visibility_distance=1.5), on the published HOZ "
+        "1.5 m, as the SAVN/MJOLNIR data (--sim visibility_distance=1.5), on the published HOZ "
         "episodes' classes where CONFIG and --set name no env.target_set (hoz22); standard and "
-        "paper = 1.0 m, the default",
+        "paper = 1.0 m (default: the config's rule, 1.0 m unless it sets env.sim)",
     )
 
 
@@ -60,7 +63,7 @@ def _train(args: argparse.Namespace) -> int:
     from mapless.train.recipes import load_train_config
     from mapless.train.run import default_run_dir, resume_config, train
 
-    overrides = list(args.set) + ([f"device={args.device}"] if args.device else [])
+    overrides = config_overrides(args)
     config_file = None if args.config is None else train_config_file(args.config)
     if args.protocol:
         overrides += protocol_overrides(args.protocol, config_file, overrides)
@@ -87,6 +90,17 @@ def _train(args: argparse.Namespace) -> int:
         )
         return 130  # the shell's code for a run ended by SIGINT
     return 0
+
+
+def config_overrides(args: argparse.Namespace) -> list[str]:
+    """``--set`` and the options that stand for config keys: ``--sim KEY=VALUE`` (``env.sim.KEY``, the
+    spelling every command shares), ``--cache-dir`` (``env.cache_dir``) and ``--device``."""
+    return [
+        *args.set,
+        *(f"env.sim.{item}" for item in args.sim),
+        *([f"env.cache_dir={args.cache_dir}"] if args.cache_dir is not None else []),
+        *([f"device={args.device}"] if args.device else []),
+    ]
 
 
 def protocol_overrides(protocol: str, config: Path | None, overrides: list[str]) -> list[str]:

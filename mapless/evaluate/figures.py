@@ -284,3 +284,72 @@ def pick_showcase(
         timed_out = [r for r in failures if not r.called_done] or failures
         failure = min(timed_out, key=lambda r: r.index).index
     return showcase, failure
+
+
+def steps_gif(
+    result: EpisodeResult,
+    library: SceneLibrary,
+    path: Path,
+    sim: SimConfig | None = None,
+    label: str = "",
+    seconds_per_step: float = 0.4,
+) -> int:
+    """One episode step by step as an animated GIF: the room from above with the target highlighted,
+    the path so far, the agent and its view cone (green while a target instance is visible under the
+    success rule), the sightings (poses that saw the target, starred) and, on the last frame, how it
+    ended (Done, wrong Done, time out); beside it, the agent's egocentric view. Returns the frames
+    written (the start and one per action)."""
+    from matplotlib.patches import Polygon
+    from PIL import Image
+
+    from mapless.actions import ACTIONS
+    from mapless.scenes.layout import load_scene
+    from mapless.sim.pictures import draw_top_down, egocentric_view
+
+    plt = _pyplot()
+    sim = sim or SimConfig()
+    scene = load_scene(result.scene)
+    data = library[result.scene]
+    poses = (result.start_pose, *result.poses)
+    sees_target = data.goal_mask(result.target)[list(poses)]
+    xy = _path_xy(library, result)
+    fig, (top, ego) = plt.subplots(1, 2, figsize=(8.4, 4.4), gridspec_kw={"width_ratios": (1.25, 1)})
+    # The room is drawn once; each frame moves only the agent's artists over it.
+    draw_top_down(top, scene, sim, highlight_types=(result.target,))
+    top.set_title(f"{label + ': ' if label else ''}{result.scene}, find {result.target}", fontsize=9)
+    (trail,) = top.plot([], [], "-", color="tab:red", linewidth=2, alpha=0.8, zorder=6)
+    (seen,) = top.plot([], [], "*", color="limegreen", markeredgecolor="black", markersize=12, zorder=7)
+    (agent,) = top.plot([], [], "o", color="tab:red", markeredgecolor="black", markersize=8, zorder=8)
+    cone = Polygon(np.zeros((3, 2)), closed=True, alpha=0.35, zorder=5)
+    top.add_patch(cone)
+    top.plot(*xy[0], "o", color="white", markeredgecolor="black", markersize=8, zorder=7)
+    view = ego.imshow(egocentric_view(scene, sim, *data.pose_tuple(poses[0]), size=168))
+    ego.axis("off")
+    half, reach = np.radians(sim.horizontal_fov / 2), sim.visibility_distance
+    frames = []
+    for step, pose in enumerate(poses):
+        x, z, yaw, horizon = data.pose_tuple(pose)
+        angles = np.radians(yaw) + np.array([-half, half])
+        cone.set_xy([[x, z], *zip(x + reach * np.sin(angles), z + reach * np.cos(angles), strict=True)])
+        cone.set_color("limegreen" if sees_target[step] else "orange")
+        trail.set_data(xy[: step + 1, 0], xy[: step + 1, 1])
+        sighted = np.flatnonzero(sees_target[: step + 1])
+        seen.set_data(xy[sighted, 0], xy[sighted, 1])
+        agent.set_data([x], [z])
+        view.set_data(egocentric_view(scene, sim, x, z, yaw, horizon, size=168))
+        action = ACTIONS[result.actions[step - 1]] if step and step <= len(result.actions) else "start"
+        text = f"step {step}/{len(poses) - 1}: {action}"
+        if step == len(poses) - 1:
+            outcome = "success" if result.success else ("wrong Done" if result.called_done else "time out")
+            text += f"  ->  {outcome} (L = {result.length}, L* = {result.optimal_length})"
+            agent.set_marker("s" if result.called_done else "X")
+            agent.set_markersize(11)
+        ego.set_title(text + ("\ntarget in view" if sees_target[step] else "\n"), fontsize=9)
+        fig.canvas.draw()
+        frames.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()))
+    plt.close(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # The last frame (how it ended) stays up longer.
+    durations = [int(1000 * seconds_per_step)] * (len(frames) - 1) + [2500]
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=durations, loop=0)
+    return len(frames)
