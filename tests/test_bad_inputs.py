@@ -1,5 +1,5 @@
 """Malformed user files and unusable folders end in one clear line (``mapless: error: ...``, exit 2)
-or are handled, never in a traceback (issue 25, items 7, 10, 11 and 15). Every bad file is made here."""
+or are handled, never in a traceback. Every bad file is made here."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
-"""One settings block per algorithm (issue 44, point 2): the A3C settings are ``a3c:`` beside
-``ppo:``, only the chosen algorithm's block may be set (tests/test_ppo.py), the reward settings are
-one ``env.reward:`` block, a key of the layout before it is refused with where it lives now, and
-files written before it still load and resume. The run folders keep their hashes
-(tests/test_experiment_configs.py, test_every_shipped_run_keeps_its_folder)."""
+"""One settings block per algorithm: the A3C settings are ``a3c:`` beside ``ppo:``, only the
+chosen algorithm's block may be set (tests/test_ppo.py), and the reward settings are one
+``env.reward:`` block. A key of the flat layout that preceded the blocks is refused with the place it
+lives, and config files and checkpoints written in that layout still load and resume. The run
+folders keep their hashes (tests/test_experiment_configs.py, test_every_shipped_run_keeps_its_folder)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """One divergence rule for every trainer (mapless/train/gradients.py ``check_finite``): batched A3C,
 PPO and Hogwild stop at a NaN or infinite gradient before the optimizer step, the checkpoint on disk
-stays the last good state, and the message never promises a checkpoint that the run did not write
-(issue 45, points 2, 11 and 17). torchrun ranks: tests/test_train_distributed.py."""
+stays the last good state, and the message never promises a checkpoint that the run did not write.
+torchrun ranks: tests/test_train_distributed.py."""
 
 from __future__ import annotations
 

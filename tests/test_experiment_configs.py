@@ -1,23 +1,10 @@
-"""The shipped experiment configs: each experiment file read over its budget's file resolves to
-exactly the configuration the one-file-per-experiment-and-budget layout gave (captured in
-tests/data/experiment_configs_resolved.json before the split; since then only the small budget's
-imitation warm start and every baseline's target_context, the layout-shift experiment and the
-fields it added, Tables 2 and 3's moves to the PPO recipe, the medium budget and the adaptive models'
-time-limit bootstrap; on 2026-12-06 the ablation experiment, ``eval.select_per_room`` and the move of
-the models' settings into recipes/laptop.yaml (now mapless/configs/), which left every run folder where it was:
-tests/data/run_folders.json; then eval.within_minutes and the long budget; then issue 44's a3c: block,
-by the key mapping alone (mapless.train.config.from_legacy_layout: the same values, checked by a
-one-off script), and its merge of an experiment's train: over the budget's, which gave table2_smoke
-the budget's env.scenes, replaced in each of its runs by the room type's: same runs; then issue 44's
-env.reward: block, by the same key mapping (the ablation rows' env.parent_reward and
-env.parent_reward_rule moved under env.reward: by from_legacy_layout applied to each row's train:,
-nothing else changed), and the composition rules; then the long budget's ablation file and the
-ablation's rows j (model.context_distance), k (with model.semantic_map) and l (k without
-meta-learning), then m (k with φ frozen, meta.train_learned_loss), n and o (cvmeta and k with no inner
-step), p and q (l with whole episodes, ppo.whole_episodes, or two minibatches), added without moving
-any run folder. On 2026-12-07 the medium budget (and the long one, which extends it) took row f's
-second-order meta-gradient for cvmeta, moving those two budgets' Table 1 cvmeta folders onto row f's
-training, and the ablation pinned its first-order base, moving none of its rows."""
+"""The shipped experiment configs: each experiment read over its budget resolves to exactly the
+configuration captured in tests/data/experiment_configs_resolved.json, every run an experiment plans
+keeps the folder recorded in tests/data/run_folders.json, and the composition rules (an
+experiment's ``train:`` merged into its budget's, other keys replaced, overrides last; budgets that
+extend others; an experiment without a file is its budget as it is) hold on crafted files. A change
+of what a shipped experiment trains, or of where its runs are kept, fails here until the captures
+are regenerated with it, on purpose; git keeps the record of each such change."""
 
 from __future__ import annotations
 

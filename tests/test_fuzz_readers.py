@@ -1,4 +1,4 @@
-"""Fuzz test of every reader of user files (issue 25): episode pickles and JSON, offline scene folders,
+"""Fuzz test of every reader of user files: episode pickles and JSON, offline scene folders,
 scene cache files, checkpoints and configs. Each gets damaged copies of a valid file (one-byte flips,
 truncations, values of the wrong kind anywhere in its structure) and crafted files (allocation and
 nesting bombs, foreign classes); every one must be read or refused with the reader's clear error

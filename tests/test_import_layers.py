@@ -2,7 +2,7 @@
 the data flow (scene -> observation -> agent -> trainer/evaluator -> report) with no circle among
 its modules or packages (docs/reference/architecture.md); scenes/ is a stack of modules each importing only those
 below it, at module level; and the action set is declared once, below both the simulator and the
-models (issue 44, point 5)."""
+models."""
 
 from __future__ import annotations
 

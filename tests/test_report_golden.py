@@ -5,8 +5,7 @@ four room types, some without poses, some with unknown optimal length). Everythi
 results into numbers and text (aggregates, seed estimates, bootstrap intervals, paired differences,
 the tables of ``mapless eval`` and ``mapless compare``, every experiment renderer) is rendered from
 them and compared, character for character, with ``report_expected.md`` and
-``report_expected.json``, captured before the metrics were declared in one registry. A change to a
-number, a label, a column order or a digit shows up here."""
+``report_expected.json``. A change to a number, a label, a column order or a digit shows up here."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The suite reports what it does not run: opt-in tests show up as skipped, with their reason, in
-every run of the whole suite, instead of being left out of collection (issue 45, point 5)."""
+every run of the whole suite, instead of being left out of collection."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""The training target sets and the evaluation sets that follow them (issue 43's coherence): the
-``hoz22`` target set is the published HOZ files' classes and trains; under the reference protocol
-the sets an experiment selects and reports on are the training target set's; an experiment refuses
-episodes of targets its runs never trained for, and ``mapless eval`` says so."""
+"""The training target sets and the evaluation sets that follow them: the ``hoz22`` target set is
+the published HOZ files' classes and trains; under the reference protocol the sets an experiment
+selects and reports on are the training target set's; an experiment refuses episodes of targets
+its runs never trained for, and ``mapless eval`` says so."""
 
 from __future__ import annotations
 

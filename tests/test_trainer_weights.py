@@ -1,11 +1,11 @@
-"""Short training runs of both algorithms against recorded weights (issue 44, point 3): PPO and the
-batched A3C trainer, with a plain and an adaptive model each, train to the weights recorded in
-tests/data/trainer_weights_golden.pt before the trainers were rearranged on a shared base.
+"""Short training runs of both algorithms against recorded weights: PPO and the batched A3C
+trainer, with a plain and an adaptive model each, train to the weights recorded in
+tests/data/trainer_weights_golden.pt, so that a change in what an update computes (the loss, the
+order of the steps, the optimizer's state, what a minibatch reads) shows up here.
 
 Training compounds rounding over its updates, so another CPU's kernels may move the weights a
 little; ``MAPLESS_GOLDEN_EXACT=1`` asks for bit-for-bit equality (on the machine that recorded).
-Re-record only on purpose (a change of training): ``python tests/test_trainer_weights.py --record``.
-"""
+Re-record only on purpose (a change of training): ``python tests/test_trainer_weights.py --record``."""
 
 from __future__ import annotations
 
