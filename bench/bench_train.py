@@ -179,7 +179,9 @@ def main() -> None:
 
     _print_summary(results, args.models.split(","), args.modes.split(","))
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+        from mapless.provenance import command_line, stamped
+
+        args.json.write_text(json.dumps(stamped({"results": results}, command_line()), indent=2))
 
 
 if __name__ == "__main__":

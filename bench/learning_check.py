@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mapless.configs import configs_dir
+from mapless.provenance import command_line, stamped
 
 
 def random_success(config, episodes: int) -> tuple[float, float]:
@@ -108,7 +109,7 @@ def main() -> None:
                   for m, r in zip(minutes, records, strict=True)],
         "run_dir": str(run_dir),
     }  # fmt: skip
-    (args.out / "learning_check.json").write_text(json.dumps(result, indent=2))
+    (args.out / "learning_check.json").write_text(json.dumps(stamped(result, command_line()), indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "curve"}, indent=2))
     print(f"curve: {args.out / 'learning_check.png'}")
 

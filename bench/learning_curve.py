@@ -30,6 +30,7 @@ from pathlib import Path
 
 from mapless.configs import configs_dir
 from mapless.episodes.protocols import get_protocol
+from mapless.provenance import command_line, describe, provenance, stamp, stamped
 
 ROOT = Path(__file__).resolve().parent.parent
 PPO_CONFIG = configs_dir() / "train_ppo.yaml"
@@ -208,8 +209,10 @@ def main() -> None:
         results = pool.map(train_and_evaluate, jobs)
     args.out.mkdir(parents=True, exist_ok=True)
     table = report(results, args.target)
-    (args.out / "learning_curve.json").write_text(json.dumps(results, indent=1))
-    (args.out / "learning_curve.md").write_text(table + "\n")
+    command = command_line()
+    (args.out / "learning_curve.json").write_text(json.dumps(stamped({"runs": results}, command), indent=1))
+    text = f"{stamp(command)}\n\n{table}\n\nMade by {describe(provenance())}.\n"
+    (args.out / "learning_curve.md").write_text(text)
     plot(results, args.target, args.out / "learning_curve.png")
     print(table)
     print(f"wrote {args.out}/learning_curve.{{json,md,png}}")

@@ -4,10 +4,14 @@ so that a number can be tied to the code and the machine that made it."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
+import shlex
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import mapless
@@ -80,3 +84,71 @@ def provenance_comment(threads: int | None = None) -> str:
     record itself as JSON, for a program to read."""
     record = provenance(threads)
     return f"Trained by {describe(record)}.\nprovenance: {json.dumps(record)}"
+
+
+def command_line(argv: list[str] | None = None) -> str:
+    """The command this process runs, as a reader would type it: ``python SCRIPT ARGS`` for a
+    script (its path relative to the working folder when it lies below it)."""
+    script, *args = sys.argv if argv is None else argv
+    path = Path(script)
+    if path.is_absolute() and path.is_relative_to(Path.cwd()):
+        path = path.relative_to(Path.cwd())
+    return shlex.join(["python", str(path), *args])
+
+
+def stamp(command: str) -> str:
+    """The line every report starts its provenance with: the command and when it finished."""
+    return f"Command: `{command}`; finished {time.strftime('%Y-%m-%d %H:%M')}."
+
+
+def stamped(payload: dict, command: str, threads: int | None = None) -> dict:
+    """``payload`` with the command, the time it finished and :func:`provenance`: what a benchmark's
+    JSON report carries, as an experiment's does."""
+    return {
+        **payload,
+        "command": command,
+        "finished": time.strftime("%Y-%m-%d %H:%M"),
+        "provenance": provenance(threads),
+    }
+
+
+def comment_of(path: str | Path) -> str:
+    """The ``#`` lines a config file starts with, without their ``# `` (empty if it has none or
+    cannot be read)."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return ""
+    comment = []
+    for line in lines:
+        if not line.startswith("#"):
+            break
+        comment.append(line[1:].removeprefix(" "))
+    return "\n".join(comment)
+
+
+def resumed_comment(previous: str, threads: int | None = None) -> str:
+    """The lines a resumed run's config starts with: those of its first start and of every earlier
+    resume (``previous``: :func:`comment_of` its config.yaml), then this resume's, so that the
+    folder names every commit that trained it. A folder whose config carries no provenance (written
+    before it was recorded) starts its record here."""
+    kept = [line for line in previous.splitlines() if line.startswith(_RECORD_LINES)]
+    if not any(line.startswith("provenance: ") for line in kept):
+        return provenance_comment(threads)
+    record = provenance(threads)
+    return "\n".join([*kept, f"Resumed by {describe(record)}.", f"resumed: {json.dumps(record)}"])
+
+
+#: The comment lines of a run's config that make up its provenance.
+_RECORD_LINES = ("Trained by ", "provenance: ", "Resumed by ", "resumed: ")
+
+
+def run_provenance(path: str | Path) -> list[dict]:
+    """The provenance records of a run's config file: its first start's, then each resume's."""
+    records = []
+    for line in comment_of(path).splitlines():
+        for key in ("provenance: ", "resumed: "):
+            if line.startswith(key):
+                with contextlib.suppress(ValueError):  # a hand-edited line
+                    records.append(json.loads(line.removeprefix(key)))
+    return records

@@ -82,3 +82,25 @@ def test_a_report_carries_provenance_in_json_and_markdown(tmp_path: Path) -> Non
     assert stored == payload and stored["provenance"] == prov.provenance()
     assert (tmp_path / "val.md").read_text() == text
     assert text.endswith(f"Made by {prov.describe(prov.provenance())}.\n")
+
+
+def test_a_benchmark_report_carries_the_command_its_date_and_commit(monkeypatch, tmp_path) -> None:
+    """bench/ reports carry the provenance experiment reports carry: the command as a reader types
+    it (the script's path relative to the working folder, not the machine's), when it finished, and
+    the code it ran."""
+    import re
+
+    from mapless.provenance import command_line, git_state, stamp, stamped
+
+    monkeypatch.chdir(tmp_path)
+    script = tmp_path / "bench" / "learning_curve.py"
+    assert (
+        command_line([str(script), "--out", "reports/x y"])
+        == "python bench/learning_curve.py --out 'reports/x y'"
+    )
+    assert command_line(["bench/x.py"]) == "python bench/x.py"
+    record = stamped({"runs": [1]}, "python bench/x.py", threads=1)
+    assert record["runs"] == [1] and record["command"] == "python bench/x.py"
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d", record["finished"])
+    assert record["provenance"]["commit"] == git_state()[0] and record["provenance"]["threads"] == 1
+    assert re.fullmatch(r"Command: `mapless x`; finished \d{4}-\d\d-\d\d \d\d:\d\d\.", stamp("mapless x"))

@@ -3,7 +3,6 @@ the figures' PNGs (and GIF) in one folder. Nothing here trains or evaluates."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from mapless.experiments.records import (
     Table2,
     Table3,
 )
+from mapless.provenance import stamp
 
 #: What a renderer returns: the JSON payload and the markdown lines (figures are written on the way).
 Rendered = tuple[dict, list[str]]
@@ -54,7 +54,7 @@ def _header(setting: Setting, title: str, command: str) -> list[str]:
         "",
         f"Budget `{config.budget}`, {config.seeds} training seed(s); {setting.report_episodes} report episodes "
         f"({config.eval.per_room} per room type); protocol: {setting.protocol_label}.",
-        f"Command: `{command}`; finished {time.strftime('%Y-%m-%d %H:%M')}.",
+        stamp(command),
         "Cells: mean (± std over seeds) [95 % bootstrap interval over episodes], in %.",
         "",
     ]
