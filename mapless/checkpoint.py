@@ -24,6 +24,7 @@ whoever wants the whole config names its type (:func:`config_of`), so nothing he
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import re
@@ -34,7 +35,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from mapless.config import from_dict, to_dict
+from mapless.config import from_dict, read_mapping, to_dict
 from mapless.errors import MaplessError
 from mapless.files import replacing
 from mapless.models import ModelConfig, NavModel, build_model
@@ -271,6 +272,96 @@ def training_clock(run_dir: str | Path) -> tuple[list[int], list[float]]:
     (:func:`training_log`)."""
     log = training_log(run_dir)
     return [int(f) for f in log["frames"]], log["seconds"]
+
+
+#: The settings a run's trained state depends on (its model, its random streams, its batch layout):
+#: every file of one run agrees on them, while a resume may change any other (a larger budget).
+RUN_IDENTITY = (
+    "model",
+    "seed",
+    "algo",
+    "a3c.mode",
+    "a3c.batch_size",
+    "a3c.workers",
+    "ppo.envs",
+    "env.scenes",
+)
+
+
+def run_identity(config: dict) -> dict[str, Any]:
+    """The :data:`RUN_IDENTITY` settings of a stored run config, as dotted keys. The model entry
+    has every default written out, so that a file written before a model setting existed agrees
+    with a later one of the same run; a key the file's layout does not hold is left out."""
+    flat: dict[str, Any] = {}
+    model = config.get("model")
+    if isinstance(model, dict):
+        with contextlib.suppress(MaplessError):  # a malformed one is compared as stored
+            model = to_dict(from_dict(ModelConfig, model, prefix="model."))
+        flat.update({f"model.{k}": v for k, v in model.items()})
+    for key in RUN_IDENTITY[1:]:
+        node: Any = config
+        for part in key.split("."):
+            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+        if node is not _ABSENT:
+            flat[key] = node
+    return flat
+
+
+_ABSENT = object()
+
+
+def identity_difference(config: dict, other: dict, names: tuple[str, str]) -> str | None:
+    """How two stored run configs differ in :func:`run_identity` (None: they are of one run);
+    ``names`` say where each comes from."""
+    mine, theirs = run_identity(config), run_identity(other)
+    keys = [k for k in mine if k in theirs and mine[k] != theirs[k]]
+    if not keys:
+        return None
+    shown = "; ".join(f"{k} is {mine[k]!r} in {names[0]}, {theirs[k]!r} in {names[1]}" for k in keys[:3])
+    return shown + (f" (and {len(keys) - 3} more settings)" if len(keys) > 3 else "")
+
+
+def foreign_files(run_dir: str | Path, payload: dict, name: str = CHECKPOINT_FILE) -> str | None:
+    """Why ``payload`` (the run folder's ``name``) is not of the run that the rest of ``run_dir``
+    holds (its config.yaml, final model and newest snapshot), or None. A file copied in from another
+    run would otherwise be resumed or evaluated as this run's, and overwrite or mix in with it."""
+    run_dir = Path(run_dir)
+    config_file = run_dir / CONFIG_FILE
+    others: list[tuple[str, dict]] = []
+    if config_file.is_file():
+        # A damaged config.yaml is no evidence of another run (a resume rewrites it).
+        with contextlib.suppress(MaplessError):
+            others.append((CONFIG_FILE, read_mapping(config_file)))
+    newest = snapshots(run_dir)[-1:]
+    for path in [run_dir / FINAL_MODEL_FILE, *(p for _, p in newest)]:
+        if path.is_file() and path.name != name:
+            others.append((str(path.relative_to(run_dir)), load_file(path)["config"]))
+    for other, config in others:
+        difference = identity_difference(payload["config"], config, (name, other))
+        if difference is not None:
+            return (
+                f"{run_dir / name} is not of the run in {run_dir}: {difference}. It was copied from "
+                "another run, or the folder mixes two runs; nothing was written. Put the run's own "
+                "file back, or train the other run in its own folder"
+            )
+    return None
+
+
+def mixed_runs(files: Sequence[Path]) -> str | None:
+    """Why the model files ``files`` (one run folder's snapshots) are not all of one run, or None."""
+    first = None
+    for path in files:
+        config = load_file(path)["config"]
+        if first is None:
+            first = (path, config)
+            continue
+        difference = identity_difference(first[1], config, (first[0].name, path.name))
+        if difference is not None:
+            return (
+                f"{path.parent} mixes the snapshots of two runs: {difference}; evaluate each run from "
+                "its own folder"
+            )
+    return None
 
 
 def resolve_model_file(path: str | Path) -> Path:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from scene_fixtures import grid_scene
 
 from mapless.config import apply_overrides, from_dict
+from mapless.models import MODELS
 from mapless.scenes.catalogue import room_type_of
 from mapless.sim.library import SceneLibrary
 from mapless.train.config import TrainConfig
@@ -36,4 +37,13 @@ def tiny_config(model: str = "a3c", *overrides: str) -> TrainConfig:
         "threads": 1,
         "progress": False,
     }
-    return from_dict(TrainConfig, apply_overrides(base, list(overrides)))
+    data = apply_overrides(base, list(overrides))
+    # The small widths for the models that have them: a setting a model does not read is refused.
+    model = data["model"]
+    for key in ("fusion_channels", "dropout"):
+        if (
+            not any(o.startswith(f"model.{key}=") for o in overrides)
+            and key not in MODELS[model["name"]].settings
+        ):
+            del model[key]
+    return from_dict(TrainConfig, data)

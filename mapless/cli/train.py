@@ -61,7 +61,7 @@ def _train(args: argparse.Namespace) -> int:
     Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
     from mapless.train.recipes import load_train_config
-    from mapless.train.run import default_run_dir, resume_config, train
+    from mapless.train.run import config_edits, default_run_dir, resume_config, train
 
     overrides = config_overrides(args)
     config_file = None if args.config is None else train_config_file(args.config)
@@ -74,6 +74,14 @@ def _train(args: argparse.Namespace) -> int:
             raise ConfigError("a resumed run keeps the success rule it was trained under; drop --protocol")
         config, state = resume_config(args.resume, overrides)
         run_dir = args.resume
+        edits = config_edits(run_dir, state)
+        if edits:
+            print(
+                f"mapless: {run_dir / 'config.yaml'} differs from the run's checkpoint in "
+                f"{'; '.join(edits)}. The run resumes with the checkpoint's config (and --set), which "
+                "config.yaml now says again: change a setting with --resume RUN_DIR --set KEY=VALUE",
+                file=sys.stderr,
+            )
     else:
         if config_file is None:
             raise ConfigError("mapless train needs CONFIG (or --resume RUN_DIR)")

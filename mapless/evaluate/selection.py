@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapless.checkpoint import FINAL_MODEL_FILE, load_file, snapshots, training_clock
+from mapless.checkpoint import FINAL_MODEL_FILE, load_file, mixed_runs, snapshots, training_clock
 from mapless.episodes import evalsets
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
@@ -128,6 +128,9 @@ def candidates(run_dir: str | Path) -> list[tuple[int, Path]]:
             found.append((episodes, final))
     if not found:
         raise MaplessError(f"run folder {run_dir} holds no model snapshot or final model")
+    mixed = mixed_runs([path for _, path in sorted(found)])
+    if mixed is not None:
+        raise MaplessError(mixed)
     return sorted(found)
 
 

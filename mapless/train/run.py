@@ -10,10 +10,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from mapless import checkpoint as ckpt
-from mapless.config import ConfigError, apply_overrides, from_dict, save_config
+from mapless.config import ConfigError, apply_overrides, from_dict, read_mapping, save_config, to_dict
 from mapless.errors import MaplessError
 from mapless.files import unwritable
-from mapless.provenance import provenance_comment
+from mapless.provenance import comment_of, provenance_comment, resumed_comment
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.builders import LibraryFactory, prepare_scenes
@@ -43,6 +43,34 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
         )
     data = apply_overrides(TrainConfig.upgrade_stored(payload["config"]), overrides or [])
     return from_dict(TrainConfig, data), payload
+
+
+def config_edits(run_dir: str | Path, resume: dict) -> list[str]:
+    """The settings in which a run folder's config.yaml differs from its checkpoint's config (a hand
+    edit, or a resume stopped before its first checkpoint): a resume trains with the checkpoint's
+    and rewrites config.yaml, so each is reported rather than silently undone."""
+    try:
+        edited = TrainConfig.upgrade_stored(read_mapping(Path(run_dir) / ckpt.CONFIG_FILE))
+    except ConfigError:
+        return []
+    stored = TrainConfig.upgrade_stored(resume["config"])
+    if ckpt.identity_difference(edited, stored, ("", "")) is not None:
+        return []  # another run's checkpoint, which the trainer refuses
+
+    def leaves(data: dict, prefix: str = "") -> dict:
+        out = {}
+        for key, value in data.items():
+            out.update(
+                leaves(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value}
+            )
+        return out
+
+    mine, theirs = leaves(edited), leaves(stored)
+    return [
+        f"{k}: {mine[k]!r} in config.yaml, {theirs.get(k)!r} in the checkpoint"
+        for k in mine
+        if mine[k] != theirs.get(k)
+    ]
 
 
 LOCK_FILE = ".lock"
@@ -157,13 +185,29 @@ def train(
             raise MaplessError(problem)
         if resume is not None and ckpt.model_config_of(resume) != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
+        if resume is not None:
+            stored = TrainConfig.upgrade_stored(resume["config"])
+            names = (ckpt.CHECKPOINT_FILE, "the config to resume with")
+            if (difference := ckpt.identity_difference(stored, to_dict(config), names)) is not None:
+                raise ConfigError(f"{run_dir} cannot be resumed so: {difference}")
+        foreign = ckpt.foreign_files(run_dir, resume) if resume is not None and ctx.is_main else None
+        if (foreign := dist.broadcast_object(foreign, ctx)) is not None:
+            raise ckpt.CheckpointError(foreign)
         if ctx.is_main:
             if not run_dir.exists():
                 stack.push(_remove_if_unused(run_dir))
             run_dir.mkdir(parents=True, exist_ok=True)
             stack.enter_context(run_folder_lock(run_dir))
             remove_torn_writes(run_dir)
-            save_config(config, run_dir / ckpt.CONFIG_FILE, provenance_comment(config.threads or None))
+            config_file = run_dir / ckpt.CONFIG_FILE
+            threads = config.threads or None
+            # A resumed run keeps the record of its first start and adds this one's.
+            comment = (
+                provenance_comment(threads)
+                if resume is None
+                else resumed_comment(comment_of(config_file), threads)
+            )
+            save_config(config, config_file, comment)
         if library_factory is None and ctx.local_rank == 0:
             prepare_scenes(config)  # once per machine: each has its own scene cache
         dist.barrier(ctx)
