@@ -24,6 +24,7 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     # top-level keys, the rewards as six keys of env:, before issue 44 gathered them into a3c: and
     # env.reward:): the same values, the same folders.
     data = to_legacy_layout(to_dict(dataclasses.replace(train_cfg, progress=False)))
+    del data["logger"]  # where the records go changes no run
     # Keys added after runs were made are hashed only where they change training, so that finished
     # runs whose training they do not change keep their folders.
     for path, changes_training in _LATER_KEYS:

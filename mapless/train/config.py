@@ -386,6 +386,10 @@ def to_legacy_layout(data: dict) -> dict:
     return _move_keys(data, [(new, old) for old, new in LEGACY_KEYS])
 
 
+#: What a TrainConfig's ``logger`` may list (mapless.train.monitor writes to each).
+LOGGERS = ("tensorboard", "wandb")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """A training run: the model, its environment and learning settings (the nested configs), then
@@ -430,6 +434,11 @@ class TrainConfig:
     """Episodes between TensorBoard / metrics.jsonl records."""
     progress: bool = True
     """Show the tqdm bar."""
+    logger: tuple[str, ...] = ("tensorboard",)
+    """Where the records go beside ``metrics.jsonl``: ``tensorboard`` and/or ``wandb`` (Weights &
+    Biases, the ``wandb`` extra; offline or online as wandb's settings say, e.g. $WANDB_MODE=offline),
+    as ``logger: [tensorboard, wandb]``; ``[]``: metrics.jsonl alone. Changes no training (nor the
+    run's folder under ``mapless reproduce``)."""
 
     def __post_init__(self) -> None:
         if self.model.name not in MODELS:
@@ -474,6 +483,11 @@ class TrainConfig:
         )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
+        _require(
+            set(self.logger) <= set(LOGGERS) and len(set(self.logger)) == len(self.logger),
+            "logger",
+            f"must list {' and/or '.join(LOGGERS)}, each at most once, got {list(self.logger)}",
+        )
         _require(
             re.fullmatch(r"cpu|cuda(:\d+)?", self.device) is not None,
             "device",

@@ -1,5 +1,5 @@
-"""Training metrics: TensorBoard scalars, ``metrics.jsonl``, the tqdm progress bar and the summary a
-trainer's run returns (:func:`run_summary`).
+"""Training metrics: TensorBoard scalars (and Weights & Biases ones, ``logger: [tensorboard, wandb]``),
+``metrics.jsonl``, the tqdm progress bar and the summary a trainer's run returns (:func:`run_summary`).
 
 Logged every ``log_every`` episodes, as means over the episodes finished since the last record
 (x axis: training episodes). Keys:
@@ -24,12 +24,16 @@ rate of the last 1000 episodes and tqdm's ETA.
 An interrupted run logs the curves of an uninterrupted one: a graceful stop (Ctrl-C, SIGTERM) writes
 no record for the unfinished interval; the interval's values so far go into the checkpoint
 (:meth:`RunMonitor.state`), and the resumed run completes that interval with them. Only the wall-clock
-values (``perf/*_per_s``, ``time``) differ.
+values (``perf/*_per_s``, ``time``) differ. Weights & Biases keeps a resumed run's records under the
+same run id (the run folder's name); it cannot drop the records written after the checkpoint, which
+the resumed run writes again (it keeps the first of each step).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import re
 import time
 from collections import deque
 from pathlib import Path
@@ -38,6 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from mapless.checkpoint import METRICS_FILE, PROGRESS_FILE
+from mapless.config import ConfigError, to_dict
 from mapless.files import write_text
 
 RUNNING_WINDOW = 1000
@@ -61,6 +66,8 @@ class RunMonitor:
             counters["frames"],
             progress=config.progress,
             description=f"{config.model.name} {mode}",
+            loggers=tuple(config.logger),
+            config=config,
         )
         saved = (resume or {}).get("monitor")
         if isinstance(saved, dict):  # checkpoints written before this field have none
@@ -86,8 +93,12 @@ class RunMonitor:
         frames: int = 0,
         progress: bool = True,
         description: str = "train",
+        loggers: tuple[str, ...] = ("tensorboard",),
+        config=None,
     ):
-        """``run_dir`` None disables every output (the non-zero ranks of a distributed run)."""
+        """``run_dir`` None disables every output (the non-zero ranks of a distributed run).
+        ``loggers``: where the records go beside metrics.jsonl (``tensorboard``, ``wandb``); ``config``
+        (the TrainConfig) is stored with a wandb run."""
         self.run_dir = run_dir
         self.log_every = log_every
         self.episodes, self.frames = episodes, frames
@@ -97,17 +108,12 @@ class RunMonitor:
         self._mark = (time.perf_counter(), episodes, frames)
         self._start = self._mark
         self._progress_written = -PROGRESS_EVERY
-        self.writer = None
+        self.writers: list = []
         self.bar = None
         if run_dir is None:
             return
-        from torch.utils.tensorboard import SummaryWriter
-
-        # A resumed run continues from a checkpoint at ``episodes``, which was written after that
-        # count's record: records beyond it (written before the run was killed) are dropped from
-        # both logs, and the resumed run writes them again. A new run (at 0 episodes) in the folder
-        # of one that wrote no checkpoint, which starts over there, drops all of that run's records.
-        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1)
+        # Before any file is written: a missing package is an error at the start, not a late surprise.
+        self.writers = [_WRITERS[name](Path(run_dir), episodes, config) for name in loggers]
         metrics = Path(run_dir) / METRICS_FILE
         if metrics.is_file():
             write_text(metrics, "".join(_records_up_to(metrics, episodes)))
@@ -202,9 +208,9 @@ class RunMonitor:
         record["perf/frames"] = float(self.frames)
         self._mark = (now, self.episodes, self.frames)
         self._window = {}
-        if self.writer is not None:
-            for key, value in record.items():
-                self.writer.add_scalar(key, value, self.episodes)
+        if self.run_dir is not None:
+            for writer in self.writers:
+                writer.add_scalars(record, self.episodes)
             self._jsonl.write(
                 json.dumps({"episodes": self.episodes, "frames": self.frames, "time": time.time(), **record})
                 + "\n"
@@ -219,12 +225,74 @@ class RunMonitor:
         the checkpoint's :meth:`state`: an extra record here would make its next one a short one."""
         if partial_record and any(self._window.values()):
             self._write()
-        if self.writer is not None:
-            self.writer.flush()
-            self.writer.close()
+        if self.run_dir is not None:
+            for writer in self.writers:
+                writer.close()
             self._jsonl.close()
         if self.bar is not None:
             self.bar.close()
+
+
+class TensorBoardWriter:
+    """The records as TensorBoard scalars in the run folder."""
+
+    def __init__(self, run_dir: Path, episodes: int, config=None):
+        from torch.utils.tensorboard import SummaryWriter
+
+        # A resumed run continues from a checkpoint at ``episodes``, which was written after that
+        # count's record: records beyond it (written before the run was killed) are dropped from
+        # both logs, and the resumed run writes them again. A new run (at 0 episodes) in the folder
+        # of one that wrote no checkpoint, which starts over there, drops all of that run's records.
+        self.writer = SummaryWriter(log_dir=str(run_dir), purge_step=episodes + 1)
+
+    def add_scalars(self, record: dict[str, float], episodes: int) -> None:
+        for key, value in record.items():
+            self.writer.add_scalar(key, value, episodes)
+
+    def close(self) -> None:
+        self.writer.flush()
+        self.writer.close()
+
+
+class WandbWriter:
+    """The records as a Weights & Biases run (step: training episodes), its files under the run
+    folder's ``wandb/``; the project is $WANDB_PROJECT, else ``mapless``. Offline or online as wandb's
+    own settings say ($WANDB_MODE=offline: no account, ``wandb sync`` uploads later)."""
+
+    def __init__(self, run_dir: Path, episodes: int, config=None):
+        try:
+            import wandb
+        except ImportError:
+            raise ConfigError(
+                "config key 'logger': wandb is not installed; pip install -c constraints.txt "
+                "-e '.[wandb]' (or pip install wandb), or log to tensorboard only"
+            ) from None
+
+        self.run = wandb.init(
+            dir=str(run_dir),
+            project=os.environ.get("WANDB_PROJECT", "mapless"),
+            name=run_dir.name,
+            id=_wandb_id(run_dir),
+            resume="allow",  # the same id again: a resumed run continues its wandb run
+            config=to_dict(config) if config is not None else None,
+            reinit="create_new",
+        )
+
+    def add_scalars(self, record: dict[str, float], episodes: int) -> None:
+        self.run.log(record, step=episodes)
+
+    def close(self) -> None:
+        self.run.finish()
+
+
+def _wandb_id(run_dir: Path) -> str:
+    """A run folder's wandb id: its name with the characters wandb refuses replaced (it must be the
+    same when the run resumes, and tell runs apart)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "-", Path(run_dir).resolve().name)[:128]
+
+
+#: The writer of each name a config's ``logger`` may list (mapless.train.config.LOGGERS).
+_WRITERS = {"tensorboard": TensorBoardWriter, "wandb": WandbWriter}
 
 
 def _records_up_to(path: Path, episodes: int) -> list[str]:
