@@ -41,9 +41,8 @@ def tiny_config(model: str = "a3c", *overrides: str) -> TrainConfig:
     # The small widths for the models that have them: a setting a model does not read is refused.
     model = data["model"]
     for key in ("fusion_channels", "dropout"):
-        if (
-            not any(o.startswith(f"model.{key}=") for o in overrides)
-            and key not in MODELS[model["name"]].settings
+        if not any(o.startswith(f"model.{key}=") for o in overrides) and key not in getattr(
+            MODELS.get(model["name"]), "settings", {key: ""}
         ):
             del model[key]
     return from_dict(TrainConfig, data)

@@ -75,16 +75,7 @@ def config_edits(run_dir: str | Path, resume: dict) -> list[str]:
 
 LOCK_FILE = ".lock"
 #: Settings a checkpoint's state depends on: ``--resume --set`` may not change them.
-FIXED_ON_RESUME = (
-    "model.",
-    "seed",
-    "algo",
-    "a3c.mode",
-    "a3c.batch_size",
-    "a3c.workers",
-    "ppo.envs",
-    "env.scenes",
-)
+FIXED_ON_RESUME = ("model.", *ckpt.RUN_IDENTITY[1:])
 
 
 @contextlib.contextmanager
