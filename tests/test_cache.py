@@ -77,6 +77,7 @@ def test_damaged_entries_are_detected_and_rebuilt(tmp_path, damage):
     cache.load(path, FAST)  # the rebuilt file is valid again
 
 
+@pytest.mark.slow
 def test_prepare_builds_only_the_missing_scenes_before_first_use(tmp_path):
     from mapless.sim.library import SceneLibrary
 

@@ -23,6 +23,8 @@ TRAINERS = {
     "ppo": ("algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=400"),
     "async": ("a3c.mode=async", "a3c.workers=2"),
 }
+#: Hogwild starts worker processes: the slow tier.
+TRAINER_CASES = [pytest.param(t, marks=pytest.mark.slow) if t == "async" else t for t in TRAINERS]
 
 
 def test_the_rule() -> None:
@@ -37,7 +39,7 @@ def test_the_rule() -> None:
         assert "checkpoint.pt" not in str(none.value)
 
 
-@pytest.mark.parametrize("trainer", TRAINERS)
+@pytest.mark.parametrize("trainer", TRAINER_CASES)
 def test_a_diverging_run_stops_with_a_clear_error_and_keeps_its_last_checkpoint(
     tmp_path: Path, trainer: str
 ) -> None:
@@ -56,7 +58,7 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_its_last_checkpoint(
             assert torch.equal(value, after["model"][key]), key
 
 
-@pytest.mark.parametrize("trainer", TRAINERS)
+@pytest.mark.parametrize("trainer", TRAINER_CASES)
 def test_divergence_before_the_first_checkpoint_promises_none(tmp_path: Path, trainer: str) -> None:
     run = tmp_path / "run"
     config = tiny_config("a3c", *TRAINERS[trainer], DIVERGING, "checkpoint_every=1000")

@@ -41,6 +41,7 @@ def test_builtin_sets_match_the_protocol(split):  # the reference sets: tests/te
 ISLAND_SCENES = ("FloorPlan227", "FloorPlan326", "FloorPlan329", "FloorPlan427", "FloorPlan428")
 
 
+@pytest.mark.slow
 def test_no_built_in_set_starts_on_a_pose_graph_island(library):
     # The three island starts the standard and paper sets once held (test/bedroom/185,
     # test/bathroom/234, paper/bathroom/175) were redrawn; the first 100 episodes of each room type,
@@ -57,6 +58,7 @@ def test_no_built_in_set_starts_on_a_pose_graph_island(library):
     assert checked > 50
 
 
+@pytest.mark.slow
 def test_regeneration_is_bit_for_bit(library):
     # Rooms draw from independent streams, so the first bathroom episodes of a smaller set are the
     # first bathroom episodes of the shipped one.

@@ -62,6 +62,7 @@ def test_oracle_scores_perfectly(episodes):
     assert all(r.stops_passed == 0 for r in run.results)  # it stops where it first could
 
 
+@pytest.mark.slow
 def test_results_independent_of_workers_and_batch_neighbours(episodes):
     spec = AgentSpec(model={"name": "a3c", "hidden_size": 64}, init_seed=3)
     one = evaluate(spec, episodes, EvalSettings(batch_size=6, workers=1, seed=7), LIBRARY)

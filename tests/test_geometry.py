@@ -71,6 +71,7 @@ def test_floor_and_walls_bound_every_ray():
     assert frame.points[~floor_rays, 2].max() <= 2.0 + 0.03
 
 
+@pytest.mark.slow
 def test_occluded_object_is_not_in_view_and_partial_occlusion_shrinks_its_box():
     h = CONFIG.eye_height
     front = box("Wall|1", "Cabinet", (0, h, 1.5), (2.0, 2.0, 0.2))  # wide, covers the view of the apple
@@ -94,6 +95,7 @@ def test_occluded_object_is_not_in_view_and_partial_occlusion_shrinks_its_box():
     assert x1 >= 150 - 300 / 84 and x2 == pytest.approx(176, abs=4)
 
 
+@pytest.mark.slow
 def test_visibility_distance_uses_the_vertical_capsule():
     # Apple on the floor 0.9 m ahead: seen looking down, horizontal distance 0.9 -> visible at 1.0 m.
     near = box("Apple|1", "Apple", (0, 0.05, 0.9), (0.1, 0.1, 0.1), pickupable=True)
@@ -109,6 +111,7 @@ def test_visibility_distance_uses_the_vertical_capsule():
     assert set(wider.visible(pose).tolist()) == {0, 1}
 
 
+@pytest.mark.slow
 def test_contents_of_closed_receptacles_are_never_visible_but_open_shelves_show_theirs():
     h = 1.0
     fridge = box("Fridge|1", "Fridge", (0, h, 1.0), (0.8, 2.0, 0.6), receptacle=True, openable=True)

@@ -136,6 +136,7 @@ def test_planned_runs_of_the_layout_shift_configs():
     assert planned_runs(load_experiment("layout_shift", "smoke", seeds=2)) == {"a3c": 4, "cvmeta": 4}
 
 
+@pytest.mark.slow
 def test_reproduce_layout_shift_end_to_end(cache_root, capsys):
     root = cache_root
     library = SceneLibrary.builtin(FAST)

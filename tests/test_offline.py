@@ -232,6 +232,7 @@ def built_scenes():
     ]
 
 
+@pytest.mark.slow
 def test_round_trip_built_in_scenes(built_scenes, tmp_path):
     for sd, fmt in zip(built_scenes, ("savn", "mjolnir", "savn"), strict=True):
         folder = export_scene(sd, tmp_path, fmt)

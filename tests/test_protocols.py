@@ -27,6 +27,7 @@ from tests.synthetic import box, square_room
 STANDARD, REFERENCE = PROTOCOLS["standard"], PROTOCOLS["reference"]
 
 
+@pytest.mark.slow
 def test_the_reference_rule_sees_one_and_a_half_metres_on_known_geometry():
     # Mugs on a counter at eye-ish height straight ahead: the capsule distance is the horizontal one.
     # Their near faces lie 1.25 m and 1.65 m away.
@@ -230,6 +231,7 @@ def test_the_shipped_published_sets_are_their_files_mapped(split):
             assert np.hypot(e.start[0] - published.start[0], e.start[1] - published.start[1]) <= 0.36
 
 
+@pytest.mark.slow
 def test_the_published_sets_map_exactly_onto_a_built_scene():
     # FloorPlan424 built here under the reference rule: mapping its published test episodes gives the
     # shipped episodes, optimal lengths included.

@@ -208,6 +208,7 @@ def _drawn(library: SceneLibrary, target_set: str, n: int) -> list[Episode]:
     return out
 
 
+@pytest.mark.slow
 def test_a_hoz22_run_trains_and_eval_flags_targets_it_never_trained_for(tmp_path, capsys):
     # One bathroom (built once into the session's test cache): hoz22's bathroom targets are
     # GarbageCan, LightSwitch and Sink, none of them a mjolnir22 target there.
