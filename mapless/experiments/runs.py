@@ -13,7 +13,7 @@ from pathlib import Path
 
 from mapless.config import to_dict
 from mapless.experiments.config import ExperimentConfig
-from mapless.models.registry import MODELS
+from mapless.models.registry import model_class, model_folder_name
 from mapless.train.config import to_legacy_layout
 
 
@@ -33,14 +33,15 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
             del data[section][key]
     blob = json.dumps(data, sort_keys=True)
     digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
-    return Path(config.runs_dir) / f"{train_cfg.model.name}__{variant}__s{train_cfg.seed}__{digest}"
+    model = model_folder_name(train_cfg.model.name)
+    return Path(config.runs_dir) / f"{model}__{variant}__s{train_cfg.seed}__{digest}"
 
 
 def _meta_learns_under_ppo(train_cfg) -> bool:
     """PPO's whole episodes through the inner loop: only adaptive models that keep meta-learning."""
     return (
         train_cfg.algo == "ppo"
-        and MODELS[train_cfg.model.name].is_adaptive()
+        and model_class(train_cfg.model.name).is_adaptive()
         and train_cfg.model.adapt != "none"
     )
 

@@ -82,7 +82,8 @@ ADAPT_MODES = ("all", "policy", "none")
 class ModelConfig:
     """Typed construction arguments of every registered model (fields a model does not use are ignored).
 
-    name: registered model name (``mapless models list``).
+    name: a model name (``mapless models list``), or the import path ``package.module:Class`` of a
+        model in one's own package (:func:`mapless.models.registry.model_class`).
     category_set: category set of the context vector / graph nodes (``mjolnir101`` or ``all_types``).
     feature_channels: channels of ``obs["features"]``; None = category count + 3 (docs/guide/simulator.md, "Observations");
         512 reproduces the references' ResNet-18 input sizes.

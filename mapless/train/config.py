@@ -15,8 +15,9 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from mapless.config import ConfigError
+from mapless.errors import MaplessError
 from mapless.models.base import ModelConfig
-from mapless.models.registry import MODELS
+from mapless.models.registry import MODELS, model_class
 from mapless.models.settings import unread_setting
 from mapless.scenes.catalogue import resolve_scenes
 from mapless.scenes.categories import targets
@@ -441,12 +442,12 @@ class TrainConfig:
     run's folder under ``mapless reproduce``)."""
 
     def __post_init__(self) -> None:
-        if self.model.name not in MODELS:
-            raise ConfigError(
-                f"config key 'model.name': unknown model {self.model.name!r}; valid models: {', '.join(MODELS)}"
-            )
+        try:
+            model = model_class(self.model.name)
+        except MaplessError as error:
+            raise ConfigError(f"config key 'model.name': {error}") from None
         _require(self.model.name != "random", "model.name", "the random agent has nothing to train")
-        if (unread := unread_setting(MODELS, self.model)) is not None:
+        if (unread := unread_setting({**MODELS, self.model.name: model}, self.model)) is not None:
             raise ConfigError(unread)
         _require(self.episodes >= 0, "episodes", f"must be >= 0, got {self.episodes}")
         _require(self.frames >= 0, "frames", f"must be >= 0, got {self.frames}")
@@ -536,7 +537,7 @@ class TrainConfig:
         ``trains_with_parent_reward``)."""
         if self.env.reward.parent_reward is not None:
             return self.env.reward.parent_reward
-        return MODELS[self.model.name].trains_with_parent_reward
+        return model_class(self.model.name).trains_with_parent_reward
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)

@@ -13,6 +13,7 @@ from mapless import checkpoint as ckpt
 from mapless.config import ConfigError, apply_overrides, from_dict, read_mapping, save_config, to_dict
 from mapless.errors import MaplessError
 from mapless.files import unwritable
+from mapless.models import model_folder_name
 from mapless.provenance import comment_of, provenance_comment, resumed_comment
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
@@ -25,7 +26,8 @@ from mapless.train.ppo import PPOTrainer
 def default_run_dir(config: TrainConfig, root: str | Path = "runs", label: str = "") -> Path:
     """``runs/<label>__<model>__<mode>__s<seed>__<time>`` (CleanRL-style: readable and unique)."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    parts = [p for p in (label, config.model.name, config.mode, f"s{config.seed}", stamp) if p]
+    model = model_folder_name(config.model.name)
+    parts = [p for p in (label, model, config.mode, f"s{config.seed}", stamp) if p]
     return Path(root) / "__".join(parts)
 
 
