@@ -1,43 +1,48 @@
-"""The recipe of docs/guide/models.md, "Adding a model": a minimal model registered by name trains for one
-PPO update and is evaluated, through the same code as every shipped model."""
+"""The recipe of docs/guide/models.md, "Adding a model": the guide's module, written as it stands into
+a package outside the repository and named by its import path, trains for one PPO update and is
+evaluated, through the same code as every shipped model."""
 
 from __future__ import annotations
 
+import re
+import sys
+from pathlib import Path
+
 import numpy as np
+import pytest
 import torch
-import torch.nn.functional as F
-from torch import Tensor, nn
 from train_fixtures import fixture_library, tiny_config
 
 from mapless.agent.evaluation import ModelAgent
 from mapless.evaluate.runner import EvalSettings, run_episodes
-from mapless.models import registry
-from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel
-from mapless.models.layers import target_row
-from mapless.models.roles import ParameterRoles
+from mapless.models import model_class
 from mapless.train.ppo import PPOTrainer
 
-
-class TargetRowModel(RecurrentNavModel):
-    """Reads only the target's own context row and the previous policy."""
-
-    description = "example: the target's context row -> LSTM"
-    parameter_roles = RECURRENT_CORE_ROLES | ParameterRoles(policy=("embed",))
-
-    def __init__(self, config, knowledge=None):
-        super().__init__(config, knowledge)
-        self.embed = nn.Linear(4 + NUM_ACTIONS, 32)
-        self.build_recurrent_core(32, glorot=False)
-
-    def encode(self, obs: dict[str, Tensor], hidden, prev_policy: Tensor):
-        row = target_row(obs["context"], obs["target_index"])
-        return F.relu(self.embed(torch.cat([row, prev_policy], dim=1))), None
+GUIDE = Path(__file__).resolve().parents[1] / "docs" / "guide" / "models.md"
 
 
-def test_a_new_model_registers_trains_and_evaluates(monkeypatch) -> None:
-    monkeypatch.setitem(registry.MODELS, "target_row", TargetRowModel)
+def guide_module() -> str:
+    """The first Python block of the guide's "Adding a model" section."""
+    section = GUIDE.read_text().split("## Adding a model", 1)[1].split("\n## ", 1)[0]
+    (first, *_) = re.findall(r"```python\n(.*?)```", section, re.DOTALL)
+    return first
+
+
+@pytest.fixture
+def guide_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    (tmp_path / "mypkg").mkdir()
+    (tmp_path / "mypkg" / "__init__.py").write_text("")
+    (tmp_path / "mypkg" / "models.py").write_text(guide_module())
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "mypkg.models:TargetRowModel"
+    for name in [m for m in sys.modules if m == "mypkg" or m.startswith("mypkg.")]:
+        del sys.modules[name]
+
+
+def test_the_guides_model_from_its_own_package_trains_and_evaluates(guide_package: str) -> None:
+    assert model_class(guide_package).__module__ == "mypkg.models"
     config = tiny_config(
-        "target_row", "algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=64"
+        guide_package, "algo=ppo", "ppo.envs=4", "ppo.minibatches=2", "episodes=0", "frames=64"
     )
     trainer = PPOTrainer(config, None, fixture_library)
     trainer.build()
