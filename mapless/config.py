@@ -51,7 +51,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         item = args[0] if args else Any
         items = [_coerce(v, item, f"{key}[{i}]") for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
-    if origin is dict:
+    if origin is dict or annotation is dict:
         if not isinstance(value, dict):
             raise ConfigError(f"config key {key!r}: expected a mapping, got {value!r}")
         return dict(value)
@@ -153,6 +153,21 @@ def merge_mappings(base: dict, top: dict) -> dict:
         nested = isinstance(value, dict) and isinstance(out.get(key), dict)
         out[key] = merge_mappings(out[key], value) if nested else value
     return out
+
+
+def section(data: dict, key: str, where: str = "", prefix: str = "") -> dict:
+    """``data[key]``, a nested mapping of a config (missing or empty: ``{}``), or a ConfigError naming
+    the key (after ``prefix``, the mapping's own key) and the type it must have; ``where`` (a file)
+    starts the message."""
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ConfigError(
+            f"{where + ': ' if where else ''}config key {prefix + str(key)!r}: expected a mapping, got a "
+            f"{type(value).__name__} ({value!r})"
+        )
+    return value
 
 
 def read_mapping(path: str | Path) -> dict:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
+from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping, section
 from mapless.configs import configs_dir
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
@@ -213,7 +213,9 @@ def read_experiment(source: Path | dict, overrides: list[str] | None = None) -> 
     data = _experiment_mapping(source) if isinstance(source, Path) else dict(source)
     if "budget" in data:
         budget = read_budget(data["budget"])
-        train = merge_mappings(budget.get("train") or {}, data.get("train") or {})
+        train = merge_mappings(
+            section(budget, "train", data["budget"]), section(data, "train", "the experiment file")
+        )
         data = {**budget, **data, **({"train": train} if train else {})}
     return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
 
@@ -226,12 +228,13 @@ def _experiment_mapping(path: Path, _extending: tuple[Path, ...] = ()) -> dict:
     base = data.pop("extends", None)
     if base is None:
         return data
-    chain = (*_extending, path)
+    # By real path: a file reached again through '..', a link or another spelling closes a circle.
+    chain = (*_extending, path.resolve())
     base_path = path.parent / str(base)
     if not base_path.is_file():
         raise ConfigError(f"{path}: 'extends: {base}' names no file beside it")
-    if base_path in chain:
-        raise ConfigError(f"{path}: experiment files cannot extend in a circle")
+    if base_path.resolve() in chain:
+        raise ConfigError(f"{path}: experiment files cannot extend in a circle ('extends: {base}')")
     return {**_experiment_mapping(base_path, chain), **data}
 
 
@@ -296,7 +299,7 @@ def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | 
     from mapless.train.recipes import with_recipe
 
     data = json.loads(json.dumps(config.train))
-    for layer in (config.per_model.get(model, {}), extra or {}):
+    for layer in (section(config.per_model, model, prefix="per_model."), extra or {}):
         data = merge_mappings(data, layer)
     protocol = get_protocol(config.eval.protocol)
     visibility = protocol.visibility_distance

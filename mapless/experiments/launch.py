@@ -14,7 +14,9 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import shutil
 import signal
+import subprocess
 import time
 import traceback
 from collections import Counter
@@ -317,6 +319,37 @@ def import_submitit() -> Any:
     return submitit
 
 
+#: The Slurm commands submitit runs: submission, the job step, and the query that shows the
+#: scheduler answers.
+SLURM_COMMANDS = ("sbatch", "srun", "sinfo")
+
+
+def slurm_problem(timeout: float = 30.0) -> str | None:
+    """Why jobs cannot be submitted to Slurm from this machine (None: they can), found before any
+    run starts: submitit otherwise fails at the first submission, or in its job, with a traceback."""
+    missing = [command for command in SLURM_COMMANDS if shutil.which(command) is None]
+    if missing:
+        return (
+            f"--launcher slurm needs Slurm's {', '.join(SLURM_COMMANDS)} on PATH, and "
+            f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} not there: run the command "
+            "on a machine of the cluster (its login node), or leave out --launcher slurm to train here"
+        )
+    try:
+        done = subprocess.run(
+            ["sinfo", "--noheader", "--format=%P"], capture_output=True, text=True, timeout=timeout
+        )
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return (
+            f"--launcher slurm: the Slurm scheduler does not answer (sinfo: {error}); nothing was submitted"
+        )
+    if done.returncode != 0:
+        reason = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[0]
+        return (
+            f"--launcher slurm: the Slurm scheduler does not answer (sinfo: {reason}); nothing was submitted"
+        )
+    return None
+
+
 @dataclass(frozen=True)
 class SlurmLauncher:
     """Each run not finished as a Slurm job (submitit), unless a job of it is still queued or
@@ -333,6 +366,12 @@ class SlurmLauncher:
     wait: bool = True
     cluster: str = "slurm"
     poll_seconds: float = 10.0
+
+    def __post_init__(self) -> None:
+        # Made when the command is read, so a machine without Slurm is refused before any work.
+        problem = slurm_problem() if self.cluster == "slurm" else None
+        if problem is not None:
+            raise MaplessError(problem)
 
     def train(self, runs: Sequence[PlannedRun], log: Log) -> bool:
         submitit = import_submitit()

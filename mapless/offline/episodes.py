@@ -181,7 +181,10 @@ class MappingReport:
     Target ids: ``exact_ids`` kept verbatim, ``nearest_ids`` matched to the nearest object of the
     type within the radius, ``moved_ids`` matched to the scene's only instance of the type farther
     away, ``dropped_ids`` without a counterpart in an episode that kept its other targets.
-    ``exact_episodes``: every target id and the start verbatim, the published episode itself."""
+    ``exact_episodes``: every target id and the start verbatim, the published episode itself, its
+    type agreeing with its ids. ``contradictions``: ``(index in the file, detail)`` of the mapped
+    episodes whose ``goal_object_type`` names none of their target ids' types; the ids decide (they
+    are what success is judged by), and such an episode is never exact."""
 
     episodes: list[Episode]
     skipped: list[tuple[int, str]]
@@ -192,6 +195,7 @@ class MappingReport:
     dropped_ids: int = 0
     snapped_starts: int = 0
     exact_episodes: int = 0
+    contradictions: list[tuple[int, str]] = field(default_factory=list)
 
     @property
     def mapped(self) -> int:
@@ -211,6 +215,12 @@ class MappingReport:
             "(no counterpart; the episode kept its other targets)",
             f"start poses: {self.snapped_starts} snapped to the nearest built-in pose",
         ]
+        if self.contradictions:
+            index, detail = self.contradictions[0]
+            lines.append(
+                f"type contradicts ids: {len(self.contradictions)} episode(s) name a goal type none of "
+                f"their target ids has; mapped by their ids, not exact (e.g. #{index}: {detail})"
+            )
         for reason, count in self.causes().most_common(max_reasons):
             example = next(f"#{i}: {r}" for i, r in self.skipped if _reason_kind(r) == reason)
             lines.append(f"  skipped {count}: {reason} (e.g. {example})")
@@ -334,13 +344,23 @@ def map_episodes(
             )
             continue
         target_types = [scene.object(i).type for i in match.ids]
-        goal = next((t for t in _v5_types(episode.target_type) if t in target_types), target_types[0])
+        goal = next((t for t in _v5_types(episode.target_type) if t in target_types), None)
+        published = [object_type_of_id(i) for i in episode.target_ids]
+        agrees = goal is not None and any(t in published for t in _v5_types(episode.target_type))
+        if not agrees:
+            report.contradictions.append(
+                (
+                    episode.index,
+                    f"goal_object_type {episode.target_type!r}, target ids {list(episode.target_ids)}",
+                )
+            )
+            goal = goal or target_types[0]
         report.exact_ids += match.exact
         report.nearest_ids += match.nearest
         report.moved_ids += match.moved
         report.dropped_ids += match.dropped
         report.snapped_starts += snapped
-        report.exact_episodes += not snapped and match.exact == len(episode.target_ids)
+        report.exact_episodes += agrees and not snapped and match.exact == len(episode.target_ids)
         report.episodes.append(
             Episode(
                 scene=name,

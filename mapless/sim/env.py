@@ -61,6 +61,10 @@ class NavEnv(gym.Env):
     ):
         if episodes is None and sampler is None:
             raise MaplessError("NavEnv needs a list of episodes or an episode sampler")
+        if episodes is not None and len(episodes) == 0:  # reset would pick from nothing
+            raise MaplessError(
+                "NavEnv got an empty list of episodes; give at least one, or an episode sampler"
+            )
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise MaplessError(
                 f"render_mode {render_mode!r} is not one of {', '.join(self.metadata['render_modes'])}"

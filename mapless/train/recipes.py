@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping
+from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping, section
 from mapless.configs import configs_dir
 from mapless.errors import UnknownNameError
-from mapless.models import ModelConfig
+from mapless.models import MODELS, ModelConfig
 from mapless.train.config import TrainConfig
 
 
@@ -46,8 +46,12 @@ def with_recipe(data: dict, directory: Path | None = None) -> dict:
     unknown = set(recipe) - {"train", "per_model"}
     if unknown:
         raise ConfigError(f"{path}: unknown recipe key {sorted(unknown)[0]!r}; valid: per_model, train")
-    model = (data.get("model") or {}).get("name", ModelConfig.name)
-    layers = (recipe.get("train") or {}, (recipe.get("per_model") or {}).get(model) or {})
+    per_model = section(recipe, "per_model", str(path))
+    for known in per_model:
+        if known not in MODELS:  # its settings would apply to no run
+            raise ConfigError(f"{path}: per_model: {UnknownNameError('model', known, MODELS)}")
+    model = section(data, "model").get("name", ModelConfig.name)
+    layers = (section(recipe, "train", str(path)), section(per_model, model, str(path), "per_model."))
     out: dict = {}
     for layer in layers:
         out = merge_mappings(out, layer)
