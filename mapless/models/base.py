@@ -80,7 +80,9 @@ ADAPT_MODES = ("all", "policy", "none")
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Typed construction arguments of every registered model (fields a model does not use are ignored).
+    """Typed construction arguments of every registered model. A field the chosen model does not read
+    (``NavModel.settings``) is refused by the training config rather than ignored
+    (:mod:`mapless.models.settings`).
 
     name: a model name (``mapless models list``), or the import path ``package.module:Class`` of a
         model in one's own package (:func:`mapless.models.registry.model_class`).
