@@ -10,13 +10,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapless.agent.allocator import keep_freed_memory
 from mapless.agent.precision import keep_compiled_kernels
 from mapless.train.config import TrainConfig
 
 
 def configure_torch(threads: int) -> None:
-    """Per-process torch settings of a trainer: ``threads`` (0 = torch's default), denormals
-    flushed to zero, and oneDNN's compiled kernels kept (:func:`keep_compiled_kernels`).
+    """Per-process settings of a trainer: ``threads`` (0 = torch's default), denormals
+    flushed to zero, oneDNN's compiled kernels kept (:func:`keep_compiled_kernels`) and freed
+    memory kept for the next update (:func:`keep_freed_memory`).
 
     Adam's second-moment estimate of weights that rarely receive gradient (the LSTM columns of
     mostly-zero ReLU features) decays into the subnormal range, where every multiply and square root
@@ -27,6 +29,7 @@ def configure_torch(threads: int) -> None:
         torch.set_num_threads(threads)
     torch.set_flush_denormal(True)
     keep_compiled_kernels()
+    keep_freed_memory()
 
 
 def seed_for(config: TrainConfig, *stream: int) -> int:
