@@ -488,3 +488,42 @@ def test_a_new_run_refuses_a_folder_that_holds_a_run_or_other_files(
     assert train(tiny_config("a3c", "episodes=4"), failed, library_factory=fixture_library)["episodes"] == 4
     records = [json.loads(line) for line in (failed / ckpt.METRICS_FILE).read_text().splitlines()]
     assert [r["episodes"] for r in records] == [4]
+
+
+def test_snapshots_follow_a_share_of_the_episode_budget(tmp_path: Path) -> None:
+    # a3c.batch_size=4 episodes per update: a snapshot after each quarter of 16 episodes.
+    config = tiny_config("a3c", "episodes=16", "snapshots=4", "checkpoint_every=1000")
+    train(config, tmp_path, library_factory=fixture_library)
+    assert [n for n, _ in ckpt.snapshots(tmp_path)] == [4, 8, 12, 16]
+
+
+def test_snapshots_follow_the_clock_of_a_run_stopped_by_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run stopped by max_seconds takes its snapshots from the clock, however large its frame
+    budget: on a clock that advances 1 s per update, 8 s split in 4 give one every 2 updates."""
+    from types import SimpleNamespace
+
+    from mapless.train import loop
+
+    now = [0.0]
+    monkeypatch.setattr(loop, "time", SimpleNamespace(perf_counter=lambda: now[0]))
+    count = loop.TrainingLoop._count
+
+    def one_second_per_update(self, *args, **kwargs):
+        now[0] += 1.0
+        return count(self, *args, **kwargs)
+
+    monkeypatch.setattr(loop.TrainingLoop, "_count", one_second_per_update)
+    config = tiny_config(
+        "a3c", "episodes=0", "frames=100000000", "max_seconds=8", "snapshots=4", "checkpoint_every=1000"
+    )
+    train(config, tmp_path, library_factory=fixture_library)
+    # a3c.batch_size=4 episodes per update: after updates 2, 4, 6 and 8, then the final model.
+    taken = [n for n, _ in ckpt.snapshots(tmp_path)]
+    assert taken[:4] == [8, 16, 24, 32] and len(taken) <= 5
+
+
+def test_a_negative_snapshot_count_is_refused() -> None:
+    with pytest.raises(ConfigError, match="snapshots"):
+        tiny_config("a3c", "snapshots=-1")

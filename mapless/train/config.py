@@ -430,7 +430,13 @@ class TrainConfig:
     "Precision"). Opt-in."""
 
     checkpoint_every: int = 10_000
-    """Episodes between checkpoints (a resumable one plus a model snapshot)."""
+    """Episodes between checkpoints (a resumable one plus a model snapshot); see ``snapshots``."""
+    snapshots: int = 0
+    """When > 0, checkpoints follow the run's budget instead of ``checkpoint_every``: one each time
+    a ``1/snapshots`` share of any budget it has (``episodes``, ``frames``, ``max_seconds``) has passed
+    since the last one. However the run ends, it then keeps at least ``snapshots - 1`` snapshots
+    before its final model for checkpoint selection: a slow model stopped by the clock as many as
+    a fast one stopped by its frames (a count of episodes gave slow models one)."""
     log_every: int = 100
     """Episodes between TensorBoard / metrics.jsonl records."""
     progress: bool = True
@@ -483,6 +489,7 @@ class TrainConfig:
             "bf16 is implemented for the A3C trainers only; ppo trains in float32",
         )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
+        _require(self.snapshots >= 0, "snapshots", f"must be >= 0, got {self.snapshots}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
         _require(
             set(self.logger) <= set(LOGGERS) and len(set(self.logger)) == len(self.logger),

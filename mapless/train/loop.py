@@ -30,7 +30,8 @@ class TrainingLoop(abc.ABC):
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self._clock = time.perf_counter()
-        self._snapshot_due = False  # the last update crossed a checkpoint_every boundary, not yet written
+        self._snapshot_due = False  # the last update crossed a checkpoint boundary, not yet written
+        self._last_snapshot = (0, 0, 0.0)  # episodes, frames and seconds at the last checkpoint (snapshots > 0)
         self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
         # Whether the run has a folder its checkpoints go to (written by rank 0 alone under torchrun,
         # whose other ranks have no run_dir), and the counters of the last checkpoint there.
@@ -111,14 +112,29 @@ class TrainingLoop(abc.ABC):
         self.counters["frames"] += frames
         self.counters["updates"] += 1
         self.monitor.advance(self.counters["episodes"], self.counters["frames"])
-        every = self.config.checkpoint_every
-        self._snapshot_due = self.counters["episodes"] // every > before // every
+        self._snapshot_due = self._crossed_checkpoint(before)
         if stop_requested:
             return True
         if self._snapshot_due and not self._budget_reached():
             self._checkpoint()
             self._snapshot_due = False
         return False
+
+    def _crossed_checkpoint(self, episodes_before: int) -> bool:
+        """Whether the update just counted puts a checkpoint here: every ``checkpoint_every``
+        episodes, or with ``snapshots`` a share of the budget since the last one (TrainConfig)."""
+        cfg, episodes, frames = self.config, self.counters["episodes"], self.counters["frames"]
+        if cfg.snapshots == 0:
+            return episodes // cfg.checkpoint_every > episodes_before // cfg.checkpoint_every
+        since = (episodes, frames, time.perf_counter() - self._clock)
+        budgets = (cfg.episodes, cfg.frames, cfg.max_seconds)
+        due = any(
+            budget > 0 and now - last >= budget / cfg.snapshots
+            for budget, now, last in zip(budgets, since, self._last_snapshot, strict=True)
+        )
+        if due:
+            self._last_snapshot = since
+        return due
 
     def run(self, resume: dict | None = None) -> dict[str, float]:
         """Train until the budget or a graceful stop; ``resume`` is a loaded checkpoint
@@ -135,6 +151,7 @@ class TrainingLoop(abc.ABC):
             self.counters["updates"],
         )
         self._clock = start
+        self._last_snapshot = (self.counters["episodes"], self.counters["frames"], 0.0)  # a resume counts from here
         first: tuple[float, int] | None = None  # after the first update (warm-up excluded from steady rates)
         stopped = False
         try:
