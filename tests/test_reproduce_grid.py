@@ -199,3 +199,46 @@ def test_an_explicit_jobs_count_gives_a_lone_run_its_share_of_the_cores(workspac
     for jobs in (2, 4, None, 1):
         LocalLauncher(jobs).train(runs, lambda message: None)
     assert trained == [(2, runs[0].run_dir), (1, runs[0].run_dir), (0, runs[0].run_dir), (0, runs[0].run_dir)]
+
+
+def _planned(model: str, max_seconds: float, frames: int) -> launch.PlannedRun:
+    from types import SimpleNamespace
+
+    config = SimpleNamespace(max_seconds=max_seconds, frames=frames)
+    return launch.PlannedRun(model, "all", 1, config, Path(model))
+
+
+def test_the_longest_runs_start_first() -> None:
+    """Every run has the same 15 minutes, but the mlp, once one of its runs has shown its speed,
+    reaches its frames in 5: its other runs go last, so the lanes end together."""
+    planned = [_planned("mlp", 900, 300_000), _planned("a3c", 900, 400_000), _planned("cvmeta", 900, 200_000)]
+    runs = list(enumerate(planned))
+    speeds: dict[str, float] = {}
+    assert launch.expected_seconds(runs[0][1], speeds) == 900  # no speed yet: its wall-clock budget
+    assert launch.next_run(list(runs), speeds)[1].model == "mlp"  # equals: the first planned
+    speeds = {"mlp": 1000.0, "a3c": 300.0}
+    assert launch.expected_seconds(runs[0][1], speeds) == 300
+    assert launch.expected_seconds(runs[1][1], speeds) == 900  # its frames would take longer than 900 s
+    waiting = list(runs)
+    order = [launch.next_run(waiting, speeds)[1].model for _ in range(3)]
+    assert order == ["a3c", "cvmeta", "mlp"] and waiting == []
+    unbounded = _planned("a3c", 0, 1_000)
+    assert launch.expected_seconds(unbounded, {}) == float("inf")
+
+
+def test_a_run_evaluated_in_a_free_lane_is_not_evaluated_again(workspace, tmp_path, monkeypatch):  # noqa: F811
+    """What a lane of the grid evaluates while the last runs train (EvaluateInLane, one worker) is
+    what the experiment's evaluation reads back afterwards: it evaluates nothing again."""
+    from mapless.evaluate import selection
+    from mapless.experiments.evaluator import EvaluateInLane, Evaluator
+
+    _, path = workspace
+    config = load_experiment("table1", "smoke", path, ["models=[a3c]", "focus=a3c", f"runs_dir={tmp_path}"])
+    (run,) = experiment_runs(config)
+    launch.train_run(run.config, run.run_dir, lambda line: None)
+    EvaluateInLane(config)(run, lambda line: None)
+    evaluated = []
+    monkeypatch.setattr(selection, "evaluate", lambda *args, **kwargs: evaluated.append(args))
+    ev = Evaluator(config, lambda line: None)
+    results, _ = ev.trained(run.run_dir, run.config)
+    assert evaluated == [] and len(results) == len(ev.report_episodes)

@@ -175,3 +175,18 @@ class Evaluator:
             )
             info = {"selection": done.selection.summary(), **info}
         return done.report.results, info
+
+
+@dataclass(frozen=True)
+class EvaluateInLane:
+    """A finished run's evaluation as the experiment will do it (selection and report), run in a
+    lane of the training grid that has no run left to train
+    (:attr:`~mapless.experiments.launch.LocalLauncher.evaluate_early`): one worker, the lane's
+    core; the results are cached in the run's folder, where the experiment's evaluation reads
+    them back (the worker count is not part of what they depend on)."""
+
+    config: ExperimentConfig
+
+    def __call__(self, run, log: Callable[[str], None]) -> None:
+        one_worker = dataclasses.replace(self.config.eval, workers=1)
+        Evaluator(dataclasses.replace(self.config, eval=one_worker), log).trained(run.run_dir, run.config)

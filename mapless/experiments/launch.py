@@ -101,15 +101,26 @@ def core_share(jobs: int) -> int:
     return max(1, cpu_cores() // jobs)
 
 
+#: ``evaluate(run, log)``: a finished run's evaluation, run in a lane of the grid that has no run
+#: left to train (picklable: it runs in a spawned process); its results are cached where the
+#: experiment's evaluation finds them afterwards.
+EarlyEvaluation = Callable[[PlannedRun, Log], None]
+
+
 @dataclass(frozen=True)
 class LocalLauncher:
     """Runs on this machine: ``jobs`` at a time in processes of their own (None:
     :func:`default_jobs`), each with its share of the cores; one job trains in this process, as
     ``mapless reproduce`` always did. A run left to train alone under an explicit ``jobs`` > 1 still
     gets only its share (``cores // jobs`` threads): two such commands side by side, the lanes of
-    a long experiment, would otherwise each take every core and slow each other several-fold."""
+    a long experiment, would otherwise each take every core and slow each other several-fold.
+
+    Side by side, the longest runs start first (:func:`expected_seconds`), and a lane with no run
+    left to train evaluates the finished ones (``evaluate_early``), so no core idles while the last
+    runs train."""
 
     jobs: int | None = None
+    evaluate_early: EarlyEvaluation | None = None
 
     def train(self, runs: Sequence[PlannedRun], log: Log) -> bool:
         runs = distinct(runs)
@@ -121,7 +132,7 @@ class LocalLauncher:
         for run in runs:
             if run.finished:
                 train_run(run.config, run.run_dir, log)  # says it is reused
-        train_side_by_side(todo, jobs, log)
+        train_side_by_side(todo, jobs, log, self.evaluate_early)
         return True
 
 
@@ -148,26 +159,62 @@ def prepare_scenes(runs: Sequence[PlannedRun]) -> None:
             prepare(run.config)
 
 
-def train_side_by_side(runs: Sequence[PlannedRun], jobs: int, log: Log) -> None:
+def expected_seconds(run: PlannedRun, frames_per_second: dict[str, float]) -> float:
+    """How long ``run`` is expected to train: its wall-clock budget, or sooner its frames at the
+    speed its model trained at in this grid so far (``frames_per_second``, by model)."""
+    config = run.config
+    budget = config.max_seconds or math.inf
+    speed = frames_per_second.get(run.model)
+    if speed and config.frames > 0:
+        return min(budget, config.frames / speed)
+    return budget
+
+
+def next_run(
+    waiting: list[tuple[int, PlannedRun]], frames_per_second: dict[str, float]
+) -> tuple[int, PlannedRun]:
+    """The longest of the ``waiting`` runs (the first planned among equals), taken out of the list:
+    started first, the longest runs leave the short ones to fill the lanes at the end."""
+    position = max(
+        range(len(waiting)), key=lambda i: (expected_seconds(waiting[i][1], frames_per_second), -i)
+    )
+    return waiting.pop(position)
+
+
+def train_side_by_side(
+    runs: Sequence[PlannedRun], jobs: int, log: Log, evaluate_early: EarlyEvaluation | None = None
+) -> None:
     """Train ``runs`` in ``jobs`` processes at a time (spawned: no state of this one is shared),
-    each with ``cores // jobs`` torch threads, showing one line per run. Ctrl-C passes to every run
-    in training, which checkpoints first; the same command resumes them."""
+    each with ``cores // jobs`` torch threads, showing one line per run; the longest first
+    (:func:`next_run`), and with ``evaluate_early``, a lane with no run left to train evaluates a
+    finished one. Ctrl-C passes to every run in training, which checkpoints first; the same command
+    resumes them."""
     threads = core_share(jobs)
     prepare_scenes(runs)
     context = mp.get_context("spawn")
     messages = context.Queue()
     waiting, active, outcomes = list(enumerate(runs)), {}, {}
+    started: dict[int, float] = {}
+    speeds: dict[str, float] = {}  # model -> frames/s of its runs trained here
+    evaluations: dict[int, Any] = {}  # run index -> the process evaluating it
+    unevaluated: list[int] = []  # finished runs not evaluated yet, in the order they finished
     display = GridDisplay(len(runs), log)
     display.write(f"training {len(runs)} runs, {jobs} at a time, {threads} torch thread(s) each")
     try:
         while waiting or active:
-            while waiting and len(active) < jobs:
-                index, run = waiting.pop(0)
+            while waiting and len(active) + len(evaluations) < jobs:
+                index, run = next_run(waiting, speeds)
                 args = (run.with_threads(threads), run.run_dir, index, messages, os.getpid())
                 process = context.Process(target=_train_child, args=args)
                 process.start()
-                active[index] = process
+                active[index], started[index] = process, time.monotonic()
                 display.start(run)
+            while evaluate_early and not waiting and unevaluated and len(active) + len(evaluations) < jobs:
+                index = unevaluated.pop(0)
+                args = (evaluate_early, runs[index], threads, index, messages, os.getpid())
+                evaluations[index] = context.Process(target=_evaluate_child, args=args)
+                evaluations[index].start()
+                display.write(f"  {runs[index].label}: evaluating while the last runs train")
             _receive(messages, outcomes, display, timeout=0.5)
             for index, process in list(active.items()):
                 if not process.is_alive():
@@ -176,7 +223,17 @@ def train_side_by_side(runs: Sequence[PlannedRun], jobs: int, log: Log) -> None:
                     del active[index]
                     kind, _ = outcomes.setdefault(index, ("failed", f"exit code {process.exitcode}"))
                     display.finish(runs[index], kind)
+                    progress = read_progress(runs[index].run_dir)
+                    if kind == "done" and progress:
+                        speeds[runs[index].model] = progress["frames"] / (time.monotonic() - started[index])
+                        unevaluated.append(index)
+            for index, process in list(evaluations.items()):
+                if not process.is_alive():
+                    process.join()
+                    del evaluations[index]  # a failure is the experiment's evaluation's to report
             display.refresh()
+        for process in evaluations.values():  # what they cache, the experiment reads next
+            process.join()
     except KeyboardInterrupt:
         display.write("mapless: stopping; every run in training writes a checkpoint first")
         for process in active.values():
@@ -210,6 +267,19 @@ def _receive(messages: Any, outcomes: dict, display: GridDisplay, timeout: float
             display.write(text)
         else:
             outcomes[index] = (kind, text)
+
+
+def _evaluate_child(
+    evaluate: EarlyEvaluation, run: PlannedRun, threads: int, index: int, messages: Any, parent: int
+) -> None:
+    """A finished run's evaluation in a spawned process of the grid (:class:`LocalLauncher`)."""
+    import torch
+
+    os.setsid()
+    exit_with_parent(parent, signum=signal.SIGTERM)
+    torch.set_num_threads(threads)
+    with contextlib.suppress(Exception):  # the experiment evaluates it again, and reports a failure
+        evaluate(run, lambda line: messages.put(("log", index, line)))
 
 
 def _train_child(config: Any, run_dir: Path, index: int, messages: Any, parent: int) -> None:
