@@ -5,6 +5,7 @@ then the pipeline evaluates them in its rows' order and returns what it found as
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
 from mapless.evaluate.selection import cache_file, episodes_digest
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
-from mapless.experiments.evaluator import Evaluator, experiment_scenes
+from mapless.experiments.evaluator import EvaluateInLane, Evaluator, experiment_scenes
 from mapless.experiments.launch import Launcher, LocalLauncher, PlannedRun, distinct
 from mapless.experiments.records import (
     Ablation,
@@ -418,7 +419,10 @@ def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log
     start = time.perf_counter()
     # The episode sets load and are checked before any training: a bad file fails now, not hours on.
     ev = Evaluator(config, log)
-    if not (launcher or LocalLauncher()).train(experiment_runs(config), log):
+    launcher = launcher or LocalLauncher()
+    if isinstance(launcher, LocalLauncher) and launcher.evaluate_early is None:
+        launcher = dataclasses.replace(launcher, evaluate_early=EvaluateInLane(config))
+    if not launcher.train(experiment_runs(config), log):
         return None
     record = PIPELINES[config.experiment](config, log, ev)
     command = command or f"mapless reproduce {config.experiment} --budget {config.budget}"
