@@ -81,6 +81,56 @@ def test_the_repository_speaks_of_itself_only() -> None:
     assert not found, "\n".join(found)
 
 
+#: A config the pages name: a shipped file by its path, or a training config by the name
+#: ``mapless train`` takes (a path after ``mapless train`` is the reader's own file; a capitalised
+#: word, NAME or CONFIG, is a placeholder).
+CONFIG_PATH = re.compile(r"mapless/configs/([a-z0-9_/*]+\.yaml)")
+TRAIN_NAME = re.compile(r"mapless train ([a-z]\w*)(?=[\s`]|$)", re.M)
+#: The configs' folder before they became package data.
+OLD_CONFIG_PATH = re.compile(
+    r"(?<![\w/.])experiments/(?:budgets|recipes|train_|\w+_(?:smoke|small|medium|long|full)\b|\*)"
+)
+
+
+def missing_configs(pages: list[Path], root: Path = REPO) -> list[str]:
+    """``page: reference`` for each config a page names that is not shipped, and each reference to
+    the configs' old folder."""
+    shipped = root / "mapless" / "configs"
+    missing = []
+    for page in pages:
+        text = page.read_text()
+        named = [p for p in CONFIG_PATH.findall(text) if not list(shipped.glob(p))]
+        named += [f"{n}.yaml" for n in TRAIN_NAME.findall(text) if not (shipped / f"{n}.yaml").is_file()]
+        named += OLD_CONFIG_PATH.findall(text)
+        missing += [f"{page.relative_to(root)}: {n}" for n in named]
+    return missing
+
+
+def test_every_config_the_pages_name_is_shipped() -> None:
+    pages = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    assert not missing_configs(pages)
+
+
+def test_a_config_that_is_not_shipped_is_found(tmp_path: Path) -> None:
+    (tmp_path / "mapless" / "configs" / "budgets").mkdir(parents=True)
+    (tmp_path / "mapless" / "configs" / "train_ppo.yaml").write_text("model: {name: mlp}\n")
+    (tmp_path / "mapless" / "configs" / "budgets" / "small.yaml").write_text("seeds: [1]\n")
+    page = tmp_path / "a.md"
+    page.write_text(
+        "mapless train train_ppo --set x=1; `mapless/configs/budgets/small.yaml`, mapless/configs/*.yaml\n"
+        "mapless train ./mine.yaml and mapless train --resume RUN, runs/experiments/small/x\n"
+    )
+    assert missing_configs([page], tmp_path) == []
+    page.write_text(
+        "mapless train train_gone\nmapless/configs/table1_small.yaml\nsee experiments/budgets/small.yaml\n"
+    )
+    assert missing_configs([page], tmp_path) == [
+        "a.md: table1_small.yaml",
+        "a.md: train_gone.yaml",
+        "a.md: experiments/budgets",
+    ]
+
+
 def test_every_promise_of_the_guarantees_names_tests_that_exist() -> None:
     """docs/reference/guarantees.md lists each promise beside the tests that enforce it."""
     text = (REPO / "docs" / "reference" / "guarantees.md").read_text()
