@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check (issue 23): cvmeta trained with PPO on the GPU at a large batch, side by side with the
+# The GPU check: cvmeta trained with PPO on the GPU at a large batch, side by side with the
 # same laptop recipe on one CPU thread, printing frames/s and val SR against minutes of training; then
 # the `full` budget's Table 1 recipe (A3C, device cuda) for a few hundred episodes, unchanged but for
 # its size. Never part of the tests. Run from the repository root on a machine with a GPU:

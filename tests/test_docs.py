@@ -22,12 +22,18 @@ PROCESS_WORD = re.compile(r"(?i)\b(?:sessions?|sittings?|written\s+by|issues?\s+
 TEXT_SUFFIXES = {".md", ".txt", ".json", ".yaml", ".yml"}
 
 
+#: The code a reader meets: the package's modules, the benchmarks and the data-building tools.
+CODE_SUFFIXES = {".py", ".sh"}
+
+
 def reader_files(root: Path = REPO) -> list[Path]:
-    """The README, every page under docs/, every experiment config and every text file of the
-    package data, under ``root``."""
+    """The README, every page under docs/, every experiment config, every text file of the package
+    data, and the code of the package, bench/ and tools/, under ``root``."""
     files = [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
     for folder in (root / "experiments", root / "mapless" / "configs", root / "mapless" / "data"):
         files += sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix in TEXT_SUFFIXES)
+    for folder in (root / "mapless", root / "bench", root / "tools"):
+        files += sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix in CODE_SUFFIXES)
     return [p for p in files if p.is_file()]
 
 
@@ -54,6 +60,13 @@ def test_the_scan_finds_each_kind_of_word_and_path(tmp_path: Path) -> None:
     )
     (tmp_path / "mapless" / "data" / "x.bin").write_text("/home/someone")  # not a text file a reader meets
     (tmp_path / "docs" / "b.md").write_text("python at /opt/torch/bin/python3; runs under /Users/me/x\n")
+    (tmp_path / "mapless" / "train").mkdir()
+    (tmp_path / "mapless" / "train" / "config.py").write_text(
+        '"""Settings."""\n\n#: The layout before issue 44.\nA = 1\n'
+    )
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "gpu.sh").write_text("# The GPU check (Issue #23).\necho ok\n")
+    (tmp_path / "bench" / "x.py").write_text("# A sitting of its own\n")
     hits = findings(reader_files(tmp_path), tmp_path)
     assert [h.split(": ", 1)[0] for h in hits] == [
         "README.md:1",
@@ -62,6 +75,9 @@ def test_the_scan_finds_each_kind_of_word_and_path(tmp_path: Path) -> None:
         "docs/results/a.md:1",
         "docs/results/a.md:2",
         "mapless/data/priors/x.json:1",
+        "mapless/train/config.py:3",
+        "bench/gpu.sh:1",
+        "bench/x.py:1",
     ]
     # Relative folders, a folder under the project and a URL's path are nobody's machine.
     ok = tmp_path / "ok.md"
@@ -72,11 +88,12 @@ def test_the_scan_finds_each_kind_of_word_and_path(tmp_path: Path) -> None:
 
 
 def test_the_repository_speaks_of_itself_only() -> None:
-    """No page, config or data file names a folder of the machine it was written on, the sittings
-    the project was made in, the author of a copy, or a tracker entry as a source: a reader has the
-    versions, the commits and docs/changelog.md."""
+    """No page, config, data file or module names a folder of the machine it was written on, the
+    sittings the project was made in, the author of a copy, or a tracker entry as a source: a reader
+    has the versions, the commits and docs/changelog.md."""
     files = reader_files()
     assert len(files) > 40
+    assert REPO / "mapless" / "train" / "config.py" in files and REPO / "bench" / "gpu_learning.sh" in files
     found = findings(files)
     assert not found, "\n".join(found)
 

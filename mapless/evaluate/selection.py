@@ -191,7 +191,7 @@ def cached_evaluate(
     if cache is not None and cache.is_file():
         try:
             stored = read_json(cache)
-        except (OSError, ValueError):  # unreadable (written by an older, non-atomic version): a miss
+        except (OSError, ValueError):  # unreadable (an older, non-atomic version wrote it): a miss
             stored = {}
         if stored.get("key") == json.loads(json.dumps(key)):
             results = [EpisodeResult.from_dict(d) for d in stored["episodes"]]

@@ -285,7 +285,7 @@ def _evaluate_child(
 def _train_child(config: Any, run_dir: Path, index: int, messages: Any, parent: int) -> None:
     """One run in a spawned process: its log lines and its outcome go back through ``messages``.
     ``parent``: the grid's process id, as the grid knew it (it may be gone before this one starts)."""
-    # A session of its own: the terminal's Ctrl-C goes to the parent only, which passes one on (two
+    # Its own process group (setsid): the terminal's Ctrl-C goes to the parent only, which passes one on (two
     # would abort the run rather than checkpoint it).
     os.setsid()
     # Killed however, the parent leaves a run that checkpoints and ends, rather than an orphan that

@@ -21,7 +21,7 @@ def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
     (the progress bar aside), so experiments with an identical run share it."""
     # The hash reads the layout the runs were made in (the A3C settings as optim:, loss: and three
-    # top-level keys, the rewards as six keys of env:, before issue 44 gathered them into a3c: and
+    # top-level keys, the rewards as six keys of env:, before 2fdbb67 gathered them into a3c: and
     # env.reward:): the same values, the same folders.
     data = to_legacy_layout(to_dict(dataclasses.replace(train_cfg, progress=False)))
     del data["logger"]  # where the records go changes no run

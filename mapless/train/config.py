@@ -201,7 +201,8 @@ class MetaConfig:
         time, so φ only ever learns to stand in for the navigation loss.
     train_learned_loss: whether φ is meta-trained at all (PPO only). Off: φ keeps its
         initialisation, so the inner steps still move the fast weights, but along a gradient that
-        nothing has taught (an ablation, issue 42: what meta-training φ adds to the inner steps).
+        nothing has taught (an ablation row: what meta-training φ adds to the inner steps;
+        docs/results/ablation.md).
     The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
     ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
     """
@@ -228,8 +229,9 @@ class PPOConfig:
     steps: segment length (non-adaptive models; adaptive ones run to the episodes' end).
     whole_episodes: non-adaptive models play ``envs`` whole episodes per update too, as the
         adaptive ones always do (each replayed from its first step; a slot whose episode ended
-        idles until the update). Off: ``steps``-step segments. Issue 42's rows p and q ask whether
-        row o's gain over row l is the whole episodes or the updates per frame they bring.
+        idles until the update). Off: ``steps``-step segments. The ablation's rows p and q ask whether
+        row o's gain over row l is the whole episodes or the updates per frame they bring
+        (docs/results/ablation.md).
     epochs, minibatches: passes over each batch of experience, and minibatches per pass (each a
         set of whole slot sequences, so the recurrent state is replayed from the segment's start).
     lr, adam_eps: Adam (``torch.optim.Adam``); ``lr_decay`` anneals lr linearly to 0 over the budget.
@@ -296,7 +298,7 @@ def _changed_keys(block: object) -> list[str]:
     return [f.name for f in dataclasses.fields(block) if getattr(block, f.name) != getattr(default, f.name)]
 
 
-#: Where each training-config key of the layout before issue 44 lives now (old path, new path): the
+#: Where each training-config key of the old layout (before 2fdbb67) lives now (old path, new path): the
 #: A3C settings, once the ``optim:`` and ``loss:`` blocks and three top-level keys, are ``a3c:``; the
 #: reward settings, once six keys of ``env:``, are ``env.reward:``.
 A3C_KEYS: tuple[tuple[str, str], ...] = (
@@ -376,12 +378,12 @@ def _move_keys(data: dict, moves: list[tuple[str, str]]) -> dict:
 
 
 def from_legacy_layout(data: dict) -> dict:
-    """A training-config mapping of the layout before issue 44 in today's layout (same values)."""
+    """A training-config mapping of the old layout (:data:`LEGACY_KEYS`) in today's layout (same values)."""
     return _move_keys(data, list(LEGACY_KEYS))
 
 
 def to_legacy_layout(data: dict) -> dict:
-    """A training-config mapping (``to_dict`` of a :class:`TrainConfig`) in the layout before issue 44,
+    """A training-config mapping (``to_dict`` of a :class:`TrainConfig`) in the old layout,
     which the run-folder hash reads (:func:`mapless.experiments.runs.run_dir_for`) so that every run
     keeps its folder."""
     return _move_keys(data, [(new, old) for old, new in LEGACY_KEYS])
@@ -522,13 +524,13 @@ class TrainConfig:
 
     @staticmethod
     def upgrade_stored(data: dict) -> dict:
-        """A config stored before issue 44 (checkpoints, model files, with the A3C settings and the
+        """A config stored in the old layout (checkpoints, model files, with the A3C settings and the
         rewards in their old places) read into today's layout."""
         return from_legacy_layout(data)
 
     @staticmethod
     def check_mapping(data: dict, prefix: str = "") -> None:
-        """Refuses a key of the layout before issue 44, saying where it lives now
+        """Refuses a key of the old layout (:data:`LEGACY_KEYS`), saying where it lives now
         (:func:`mapless.config.from_dict` calls this before it reads the fields)."""
         for keys, what in _MOVED:
             for old, new in keys:

@@ -33,7 +33,7 @@ class TrainingLoop(abc.ABC):
         self._snapshot_due = False  # the last update crossed a checkpoint boundary, not yet written
         self._last_snapshot = (0, 0, 0.0)  # episodes, frames and seconds at the last checkpoint (snapshots > 0)
         self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
-        # Whether the run has a folder its checkpoints go to (written by rank 0 alone under torchrun,
+        # Whether the run has a folder its checkpoints go to (rank 0 alone writes them under torchrun,
         # whose other ranks have no run_dir), and the counters of the last checkpoint there.
         self.has_run_folder = run_dir is not None
         self.saved: dict[str, int] | None = None
