@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,6 +23,10 @@ T = TypeVar("T")
 
 class ConfigError(MaplessError):
     pass
+
+
+def _not_a_mapping(key: str, value: Any) -> str:
+    return f"config key {key!r}: expected a mapping, got a {type(value).__name__} ({value!r})"
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
@@ -41,7 +46,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         raise ConfigError(f"config key {key!r}: {value!r} matches none of {annotation}")
     if dataclasses.is_dataclass(annotation):
         if not isinstance(value, dict):
-            raise ConfigError(f"config key {key!r}: expected a mapping, got {value!r}")
+            raise ConfigError(_not_a_mapping(key, value))
         return from_dict(annotation, value, prefix=f"{key}.")
     if origin in (tuple, list):
         if isinstance(value, str):
@@ -53,7 +58,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         return tuple(items) if origin is tuple else items
     if origin is dict or annotation is dict:
         if not isinstance(value, dict):
-            raise ConfigError(f"config key {key!r}: expected a mapping, got {value!r}")
+            raise ConfigError(_not_a_mapping(key, value))
         return dict(value)
     if origin is typing.Literal:
         if value not in args:
@@ -147,12 +152,93 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
 
 
 def merge_mappings(base: dict, top: dict) -> dict:
-    """``top`` read over ``base`` key by key, nested mappings included (neither is modified)."""
+    """``top`` read over ``base`` key by key, nested mappings included (neither is modified): the one
+    rule by which every layer of a config is read over the one below it (docs/guide/configuration.md)."""
     out = dict(base)
     for key, value in top.items():
         nested = isinstance(value, dict) and isinstance(out.get(key), dict)
         out[key] = merge_mappings(out[key], value) if nested else value
     return out
+
+
+#: One layer of a config: where it comes from (a file, ``--set``, a recipe) and its mapping.
+Layer = tuple[str, dict]
+
+
+def merge_layers(layers: list[Layer]) -> tuple[dict, dict[str, str]]:
+    """The layers read one over the other by :func:`merge_mappings`, lowest first, and the source
+    of each leaf of the result (``"train.model.name": "budgets/small.yaml"``)."""
+    out: dict = {}
+    sources: dict[str, str] = {}
+    for label, mapping in layers:
+        out = merge_mappings(out, mapping)
+        _record_sources(sources, mapping, label, "")
+    return out, sources
+
+
+def _record_sources(sources: dict[str, str], mapping: dict, label: str, prefix: str) -> None:
+    for key, value in mapping.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            sources.pop(path, None)  # a mapping over a plain value replaces it
+            _record_sources(sources, value, label, f"{path}.")
+            continue
+        for inner in [k for k in sources if k.startswith(f"{path}.")]:
+            del sources[inner]
+        sources[path] = label
+
+
+def source_of(sources: dict[str, str], path: str, default: str = "default") -> str:
+    """The layer that set ``path`` (or the nearest mapping above it), else ``default``."""
+    parts = path.split(".")
+    for end in range(len(parts), 0, -1):
+        found = sources.get(".".join(parts[:end]))
+        if found is not None:
+            return found
+    return default
+
+
+def leaves(data: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"a.b": value}`` for every value of a nested mapping that is not itself a non-empty mapping."""
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        if isinstance(value, dict) and value:
+            out.update(leaves(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def format_sources(data: dict, sources: dict[str, str], default: str = "default") -> str:
+    """Each leaf of ``data`` as ``key: value  # layer`` (``--print-config``), one a line."""
+    lines = []
+    for path, value in leaves(data).items():
+        shown = yaml.safe_dump(value, default_flow_style=True, width=10_000).strip()
+        shown = shown.removesuffix("\n...").strip()
+        lines.append(f"{path}: {shown}  # {source_of(sources, path, default)}")
+    return "\n".join(lines)
+
+
+def read_extending(
+    path: Path, label: Callable[[Path], str] = str, _chain: tuple[Path, ...] = ()
+) -> list[Layer]:
+    """The config file at ``path`` as layers: the file its ``extends: OTHER`` names (a file beside
+    it; ``.yaml`` may be left out: a budget says ``extends: small``), itself read the same way,
+    then the file. ``label`` names each file's layer. A chain that comes back to a file, by real
+    path (``..``, a link or another spelling of the folder), is refused."""
+    data = read_mapping(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return [(label(path), data)]
+    chain = (*_chain, path.resolve())
+    name = str(base)
+    base_path = path.parent / (name if name.endswith((".yaml", ".yml")) else f"{name}.yaml")
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: 'extends: {base}' names no file beside it")
+    if base_path.resolve() in chain:
+        circle = " -> ".join(p.stem for p in (*chain, base_path.resolve()))
+        raise ConfigError(f"{path}: config files cannot extend in a circle ({circle})")
+    return [*read_extending(base_path, label, chain), (label(path), data)]
 
 
 def section(data: dict, key: str, where: str = "", prefix: str = "") -> dict:
@@ -163,10 +249,7 @@ def section(data: dict, key: str, where: str = "", prefix: str = "") -> dict:
     if value is None:
         return {}
     if not isinstance(value, dict):
-        raise ConfigError(
-            f"{where + ': ' if where else ''}config key {prefix + str(key)!r}: expected a mapping, got a "
-            f"{type(value).__name__} ({value!r})"
-        )
+        raise ConfigError(f"{where + ': ' if where else ''}{_not_a_mapping(prefix + str(key), value)}")
     return value
 
 

@@ -1,8 +1,9 @@
 """The shipped experiment configs: each experiment read over its budget resolves to exactly the
 configuration captured in tests/data/experiment_configs_resolved.json, every run an experiment plans
-keeps the folder recorded in tests/data/run_folders.json, and the composition rules (an
-experiment's ``train:`` merged into its budget's, other keys replaced, overrides last; budgets that
-extend others; an experiment without a file is its budget as it is) hold on crafted files. A change
+keeps the folder recorded in tests/data/run_folders.json, and the composition rules (every layer
+read over the one below key by key: an experiment over its budget, overrides last; budgets and
+experiment files that extend others; an experiment without a file is its budget as it is) hold on
+crafted files. A change
 of what a shipped experiment trains, or of where its runs are kept, fails here until the captures
 are regenerated with it, on purpose; git keeps the record of each such change."""
 
@@ -90,19 +91,20 @@ def test_figures_share_table1s_runs_folder_and_training() -> None:
         assert getattr(figure3, key) == getattr(table1, key), key
 
 
-def test_an_experiments_train_merges_into_the_budgets_other_keys_replace_and_overrides_apply_last(
+def test_an_experiment_is_read_over_its_budget_key_by_key_and_overrides_apply_last(
     tmp_path: Path,
 ) -> None:
     path = tmp_path / "table1.yaml"
     path.write_text(
         "experiment: table1\nbudget: smoke\ntrain: {episodes: 8, model: {dropout: 0.1}}\nmodels: [a3c]\n"
     )
-    config = read_experiment(path, ["eval.per_room=2"])
+    config = read_experiment(path, ["eval.per_room=2", "models=[savn]"])
     budget = read_budget("smoke")["train"]
     # train: key by key over the budget's, nested mappings included
     assert config.train == {**budget, "episodes": 8, "model": {"hidden_size": 128, "dropout": 0.1}}
     assert config.eval.per_room == 2 and config.eval.batch_size == 16  # the rest of smoke's eval
     assert config.runs_dir == "runs/experiments/smoke"
+    assert config.models == ("savn",)  # a list is a value: the layer above replaces it whole
 
 
 def test_a_file_naming_no_budget_stands_alone_and_an_unknown_budget_is_refused(tmp_path: Path) -> None:
@@ -189,8 +191,25 @@ def test_a_budget_extending_in_a_circle_or_an_unknown_budget_is_refused(tmp_path
     with pytest.raises(ConfigError, match="smoke -> full -> smoke"):
         read_budget("smoke", tmp_path)
     (tmp_path / "medium.yaml").write_text("extends: large\n")
-    with pytest.raises(UnknownNameError, match="large"):
+    with pytest.raises(ConfigError, match="'extends: large' names no file beside it"):
         read_budget("medium", tmp_path)
+    with pytest.raises(UnknownNameError, match="large"):
+        read_budget("large", tmp_path)
+
+
+def test_budgets_and_experiment_files_extend_by_one_rule(tmp_path: Path) -> None:
+    # A budget names another by its name, an experiment file a file beside it; either is read key by
+    # key over what it extends, nested mappings included, and the same circle check refuses both.
+    (tmp_path / "small.yaml").write_text("seeds: 2\ntrain: {episodes: 8, model: {hidden_size: 64}}\n")
+    (tmp_path / "medium.yaml").write_text("extends: small\ntrain: {model: {dropout: 0.1}}\n")
+    assert read_budget("medium", tmp_path) == {
+        "seeds": 2,
+        "train": {"episodes": 8, "model": {"hidden_size": 64, "dropout": 0.1}},
+    }
+    (tmp_path / "a.yaml").write_text("experiment: table1\nseeds: 3\neval: {per_room: 2, batch_size: 4}\n")
+    (tmp_path / "b.yaml").write_text("extends: a.yaml\neval: {per_room: 3}\n")
+    config = read_experiment(tmp_path / "b.yaml")
+    assert (config.seeds, config.eval.per_room, config.eval.batch_size) == (3, 3, 4)
 
 
 def test_every_shipped_run_keeps_its_folder() -> None:

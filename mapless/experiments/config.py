@@ -5,10 +5,10 @@ the :class:`~mapless.train.config.TrainConfig` of each of an experiment's runs.
 A budget file holds what every experiment of that budget shares (training and evaluation
 settings, seeds, runs folder, Table 1's model lineup); an experiment file names its budget and holds
 only what differs from it, and an experiment that differs in nothing has no file: it is the budget
-as it is (``table1_small``). The experiment file's ``train:`` is read over the budget's key by key,
-nested mappings included (an experiment changes a budget's training settings by naming only those);
-every other top-level key it sets replaces the budget's key of that name as a whole, which keeps
-what a run gets readable from two files; ``--set`` overrides apply last."""
+as it is (``table1_small``). Each layer (budget, experiment file, ``--set``; a file's ``extends:``
+first) is read over the one below key by key, nested mappings included (:func:`mapless.config.merge_mappings`,
+the one rule); a run's training config is then the recipe the ``train`` block names, ``train`` and
+the model's ``per_model`` entry (docs/guide/configuration.md)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mapless.config import ConfigError, apply_overrides, from_dict, merge_mappings, read_mapping, section
+from mapless.config import (
+    ConfigError,
+    Layer,
+    apply_overrides,
+    from_dict,
+    merge_layers,
+    read_extending,
+    section,
+)
 from mapless.configs import configs_dir
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
@@ -194,65 +202,58 @@ def budget_path(budget: str) -> Path:
     return configs_dir() / "budgets" / f"{budget}.yaml"
 
 
-def shipped_experiment(experiment: str, budget: str) -> dict:
-    """The mapping of ``experiment`` at ``budget`` as shipped: its file, or, where none ships, the
-    budget as it is with that experiment (the budget's lineup, runs and settings)."""
+def shipped_experiment(experiment: str, budget: str) -> Path | dict:
+    """``experiment`` at ``budget`` as shipped: its file, or, where none ships, the budget as it is
+    with that experiment (the budget's lineup, runs and settings)."""
     path = config_path(experiment, budget)
     if path.is_file():
-        return _experiment_mapping(path)
+        return path
     if experiment not in EXPERIMENTS:
         raise UnknownNameError("experiment", experiment, EXPERIMENTS)
     return {"experiment": experiment, "budget": budget}
 
 
-def read_experiment(source: Path | dict, overrides: list[str] | None = None) -> ExperimentConfig:
-    """The experiment file at ``source`` (or a mapping, :func:`shipped_experiment`'s) read over the
-    file of the budget it names (one naming no budget stands alone), then ``overrides``: ``train:``
-    key by key over the budget's, the other top-level keys replacing the budget's. The runs'
-    training configs are not checked here (:func:`load_experiment` does)."""
-    data = _experiment_mapping(source) if isinstance(source, Path) else dict(source)
-    if "budget" in data:
-        budget = read_budget(data["budget"])
-        train = merge_mappings(
-            section(budget, "train", data["budget"]), section(data, "train", "the experiment file")
-        )
-        data = {**budget, **data, **({"train": train} if train else {})}
-    return from_dict(ExperimentConfig, apply_overrides(data, overrides or []))
+def _label(path: Path) -> str:
+    """A config file's layer name: its place among the shipped configs, or its path."""
+    try:
+        return str(path.resolve().relative_to(configs_dir().resolve()))
+    except ValueError:
+        return str(path)
 
 
-def _experiment_mapping(path: Path, _extending: tuple[Path, ...] = ()) -> dict:
-    """An experiment file's mapping; one that says ``extends: OTHER.yaml`` (a file beside it) is read
-    over that file's mapping, each top-level key replacing the other's, so that an experiment at a
-    second budget states only what differs (``ablation_medium.yaml``: the budget)."""
-    data = read_mapping(path)
-    base = data.pop("extends", None)
-    if base is None:
-        return data
-    # By real path: a file reached again through '..', a link or another spelling closes a circle.
-    chain = (*_extending, path.resolve())
-    base_path = path.parent / str(base)
-    if not base_path.is_file():
-        raise ConfigError(f"{path}: 'extends: {base}' names no file beside it")
-    if base_path.resolve() in chain:
-        raise ConfigError(f"{path}: experiment files cannot extend in a circle ('extends: {base}')")
-    return {**_experiment_mapping(base_path, chain), **data}
-
-
-def read_budget(budget: str, directory: Path | None = None, _extending: tuple[str, ...] = ()) -> dict:
-    """The mapping of the shipped ``budgets/<budget>.yaml``. A budget file that says ``extends: B``
-    is read over B's mapping key by key, nested mappings included, so a longer budget states only
-    what it changes (``medium`` is ``small`` for longer). ``directory``: the budgets folder (tests)."""
+def budget_layers(budget: str, directory: Path | None = None) -> list[Layer]:
+    """The shipped ``budgets/<budget>.yaml`` (``directory``: the budgets folder, tests) as layers, the
+    budgets it ``extends:`` first (``medium`` is ``small`` for longer)."""
     if budget not in BUDGETS:
         raise UnknownNameError("budget", budget, BUDGETS)
-    path = (directory or budget_path(budget).parent) / f"{budget}.yaml"
-    data = read_mapping(path)
-    base = data.pop("extends", None)
-    if base is None:
-        return data
-    chain = (*_extending, budget)
-    if base in chain:
-        raise ConfigError(f"{path}: budgets cannot extend in a circle ({' -> '.join((*chain, base))})")
-    return merge_mappings(read_budget(base, directory, chain), data)
+    return read_extending((directory or budget_path(budget).parent) / f"{budget}.yaml", _label)
+
+
+def read_budget(budget: str, directory: Path | None = None) -> dict:
+    """The mapping of a budget, read over the budgets it extends."""
+    return merge_layers(budget_layers(budget, directory))[0]
+
+
+def experiment_layers(source: Path | dict, overrides: list[str] | None = None) -> list[Layer]:
+    """The layers of an experiment's configuration, lowest first: the budget it names (with the
+    budgets that one extends), the experiment file (with the files it extends; a mapping stands for
+    an experiment with no file), then ``--set`` ``overrides``. One naming no budget stands alone."""
+    if isinstance(source, Path):
+        own = read_extending(source, _label)
+    else:
+        own = [(f"the {source.get('budget')} budget as it is (no experiment file)", dict(source))]
+    named = merge_layers(own)[0].get("budget")
+    below = budget_layers(named) if named is not None else []
+    sets = [("--set", apply_overrides({}, overrides))] if overrides else []
+    return [*below, *own, *sets]
+
+
+def read_experiment(source: Path | dict, overrides: list[str] | None = None) -> ExperimentConfig:
+    """The experiment file at ``source`` (or a mapping, :func:`shipped_experiment`'s) read over the
+    file of the budget it names, then ``overrides``, every layer key by key over the one below
+    (:func:`experiment_layers`). The runs' training configs are not checked here
+    (:func:`load_experiment` does)."""
+    return from_dict(ExperimentConfig, merge_layers(experiment_layers(source, overrides))[0])
 
 
 def load_experiment(
@@ -290,17 +291,26 @@ def load_experiment(
     return config
 
 
-def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
-    """The TrainConfig of one run: shared ``train`` <- ``per_model[model]`` <- ``extra``, model and
-    seed, and the success rule of the evaluation protocol (a run learns the rule it is scored by), and
-    the protocol's target set where none of those names one (a run learns the classes of the
-    episodes it is scored on: the reference protocol's are the published episodes', ``hoz22``)."""
-    from mapless.train.config import TrainConfig
-    from mapless.train.recipes import with_recipe
+#: The layer name of a run's keys taken from the experiment's ``train`` or ``per_model`` block: the
+#: source is the experiment layer that set the key there (:func:`print_run_sources`).
+FROM_EXPERIMENT = "experiment:"
 
-    data = json.loads(json.dumps(config.train))
-    for layer in (section(config.per_model, model, prefix="per_model."), extra or {}):
-        data = merge_mappings(data, layer)
+
+def run_layers(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None) -> list[Layer]:
+    """The layers of one run's training config, lowest first: the recipe the experiment's ``train``
+    names (its ``train``, then its ``per_model`` entry for ``model``), the experiment's ``train``,
+    its ``per_model[model]``, ``extra`` (a row of the experiment: a room, an ablation), then the
+    run's model and seed, with the evaluation protocol's success rule (a run learns the rule it is
+    scored by) and its target set where none of those names one (a run learns the classes of the
+    episodes it is scored on: the reference protocol's are the published episodes', ``hoz22``)."""
+    from mapless.train.recipes import recipe_layers
+
+    own = [
+        (f"{FROM_EXPERIMENT}train.", json.loads(json.dumps(config.train))),
+        (f"{FROM_EXPERIMENT}per_model.{model}.", section(config.per_model, model, prefix="per_model.")),
+        ("the experiment's row", extra or {}),
+    ]
+    data = merge_layers(own)[0]
     protocol = get_protocol(config.eval.protocol)
     visibility = protocol.visibility_distance
     stated = data.get("env", {}).get("sim", {}).get("visibility_distance", visibility)
@@ -309,5 +319,15 @@ def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | 
             f"config key 'train.env.sim.visibility_distance': {stated} contradicts the {config.eval.protocol} "
             f"protocol's success rule ({visibility} m); leave it out, the protocol sets it"
         )
-    data = apply_overrides(data, [f"model.name={model}", f"seed={seed}", *protocol.train_overrides(data)])
-    return from_dict(TrainConfig, with_recipe(data))
+    run = apply_overrides({}, [f"model.name={model}", f"seed={seed}"])
+    rule = apply_overrides({}, protocol.train_overrides(data))
+    layers = [*own, ("the run (model, seed)", run), (f"eval.protocol {config.eval.protocol}", rule)]
+    recipe, layers = recipe_layers(layers)
+    return [*recipe, *layers]
+
+
+def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
+    """The TrainConfig of one run, its layers (:func:`run_layers`) read one over the other."""
+    from mapless.train.config import TrainConfig
+
+    return from_dict(TrainConfig, merge_layers(run_layers(config, model, seed, extra))[0])
