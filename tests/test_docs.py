@@ -148,6 +148,43 @@ def test_a_config_that_is_not_shipped_is_found(tmp_path: Path) -> None:
     ]
 
 
+#: A calendar date. The guide and the reference say how and why, never when: results and history
+#: carry their dates in docs/results/ (with their commits) and docs/changelog.md.
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+#: A Markdown link's target: a results section's anchor may hold its date, the link's text may not.
+LINK_TARGET = re.compile(r"\]\([^)\s]*\)")
+
+
+def dated_lines(pages: list[Path], root: Path = REPO) -> list[str]:
+    """``path:line: date`` for every date in ``pages`` outside a link's target."""
+    found = []
+    for page in pages:
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            found += [
+                f"{page.relative_to(root)}:{number}: {d}" for d in DATE.findall(LINK_TARGET.sub("]", line))
+            ]
+    return found
+
+
+def test_the_guides_and_the_reference_carry_no_dates() -> None:
+    pages = sorted((REPO / "docs" / "guide").glob("*.md")) + sorted(
+        (REPO / "docs" / "reference").glob("*.md")
+    )
+    assert len(pages) > 8
+    found = dated_lines(pages)
+    assert not found, "\n".join(found)
+
+
+def test_a_date_in_a_guide_is_found_and_an_anchor_is_not(tmp_path: Path) -> None:
+    page = tmp_path / "training.md"
+    page.write_text(
+        "Measured on 2026-12-03: 411.7 frames/s.\n"
+        "See [the runs](../results/learning.md#2026-12-04-the-mlp-sanity-model) and seed 2026 of 12-03.\n"
+        "Since 2026-12-07 the default is hoz22 ([changelog](../changelog.md)).\n"
+    )
+    assert dated_lines([page], tmp_path) == ["training.md:1: 2026-12-03", "training.md:3: 2026-12-07"]
+
+
 def test_every_promise_of_the_guarantees_names_tests_that_exist() -> None:
     """docs/reference/guarantees.md lists each promise beside the tests that enforce it."""
     text = (REPO / "docs" / "reference" / "guarantees.md").read_text()
