@@ -26,7 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "with --episodes FILE, <out>/<FILE's name>.json and .md.",
     )
     ev.add_argument(
-        "model", help="run folder, model file (.pt), or 'random' / 'oracle' (untrained baselines)"
+        "model",
+        help="run folder, model file (.pt), a shipped agent zoo:EXPERIMENT/MODEL (`mapless zoo`), or "
+        "'random' / 'oracle' (untrained baselines)",
     )
     ev.add_argument(
         "--split",
@@ -111,10 +113,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         _compare,
         help="B minus A on the same episodes: SR, SPL, L>=5 and false Done, with paired 95 %% intervals",
         description="Each side is a result file: a run's evaluation (RUN/eval/*.json), a `mapless eval` "
-        "record (SPLIT.json), or REPORT.json:MODEL of an experiment report. Prints a markdown table.",
+        "record (SPLIT.json), or REPORT.json:MODEL of an experiment report; or a shipped entry "
+        "zoo:EXPERIMENT/MODEL (`mapless zoo`), whose results are read, not evaluated; beside one, a run "
+        "folder is evaluated on the entry's episodes. Prints a markdown table.",
     )
-    compare.add_argument("a", metavar="A", help="FILE or REPORT.json:MODEL")
-    compare.add_argument("b", metavar="B", help="FILE or REPORT.json:MODEL")
+    compare.add_argument("a", metavar="A", help="FILE, REPORT.json:MODEL, zoo:EXPERIMENT/MODEL or RUN_DIR")
+    compare.add_argument("b", metavar="B", help="FILE, REPORT.json:MODEL, zoo:EXPERIMENT/MODEL or RUN_DIR")
 
     rep = add_command(
         subparsers,
@@ -205,6 +209,12 @@ def _eval(args: argparse.Namespace) -> int:
     from mapless.files import unwritable
 
     path = Path(args.model)
+    shipped = None
+    if args.model.startswith("zoo:"):
+        from mapless.evaluate.zoo import entry
+
+        shipped = entry(args.model)
+        path = shipped.model_file
     settings = EvalSettings(
         batch_size=args.batch_size, workers=args.workers, seed=args.seed, greedy=args.greedy, bf16=args.bf16
     )
@@ -235,6 +245,9 @@ def _eval(args: argparse.Namespace) -> int:
         label = cfg.model.name
         baseline = None
         out = args.out or (path if path.is_dir() else path.parent) / "eval"
+        if shipped is not None:  # never into the package's data
+            label = shipped.name
+            out = args.out or Path("reports") / "eval" / "zoo" / shipped.experiment / shipped.model
     elif args.model in ("random", "oracle"):
         label = args.model
         baseline = AgentSpec(kind="oracle") if args.model == "oracle" else AgentSpec(model={"name": "random"})
@@ -340,11 +353,16 @@ def _set_name(episodes: Path) -> str:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from mapless.evaluate.report import comparison_table, read_results
+    from mapless.cli.zoo import zoo_or_run_results
+    from mapless.evaluate.report import comparison_table
+    from mapless.evaluate.zoo import is_zoo, key_mismatch, result_keys
 
-    (label_a, a), (label_b, b) = read_results(args.a), read_results(args.b)
+    (label_a, a), (label_b, b) = zoo_or_run_results(args.a, args.b), zoo_or_run_results(args.b, args.a)
     if label_a == label_b:
         label_a, label_b = args.a, args.b
+    mismatch = key_mismatch(result_keys(a[0]), result_keys(b[0]))
+    if mismatch is not None and (is_zoo(args.a) or is_zoo(args.b)):
+        raise MaplessError(f"cannot compare {args.a} with {args.b}: not the same episodes ({mismatch})")
     print(comparison_table(label_a, a, label_b, b))
     return 0
 
