@@ -249,6 +249,68 @@ def test_the_reference_pages_match_the_code_they_are_generated_from() -> None:
         )
 
 
+def _code_map():
+    """tools/code_map.py, which renders the counted part of docs/reference/architecture.md."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("code_map", REPO / "tools" / "code_map.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_code_map_matches_the_source() -> None:
+    """The architecture page's counts (files and lines per unit, what each imports, the files of one
+    PPO update of a3c and of cvmeta) are the script's rendering of the source, not typed."""
+    code_map = _code_map()
+    page = (REPO / "docs" / "reference" / "architecture.md").read_text()
+    block = code_map.render()
+    assert block in page, "regenerate: python tools/code_map.py --write"
+    units = {row[0]: row for row in code_map.module_map()}
+    # Hand-checked facts of the source: train/ppo.py is one file of train/, which imports agent/ at
+    # module level; __main__.py imports cli/ alone.
+    assert units["__main__.py"][1:3] == (1, code_map.line_count(REPO / "mapless" / "__main__.py"))
+    assert units["__main__.py"][3] == {"cli/": True}
+    assert units["train/"][3]["agent/"] is True
+    assert units["train/"][1] == len(list((REPO / "mapless" / "train").glob("*.py")))
+    order = list(units)
+    assert order.index("scenes/") < order.index("sim/") < order.index("agent/") < order.index("train/")
+    a3c, cvmeta = (set(code_map.trace_update(m)) for m in ("a3c", "cvmeta"))
+    package = REPO / "mapless"
+    assert {
+        package / "train" / "ppo.py",
+        package / "train" / "ppo_loss.py",
+        package / "models" / "base.py",
+    } <= a3c
+    assert package / "agent" / "low_rank.py" in cvmeta - a3c  # the inner loop is the adaptive models'
+    assert package / "models" / "a3c.py" in a3c - cvmeta
+
+
+def test_the_code_map_block_is_replaced_between_its_markers(tmp_path: Path) -> None:
+    code_map = _code_map()
+    page = f"# Code map\n\nProse.\n\n{code_map.BEGIN}\nold table\n{code_map.END}\n\n## After\n"
+    new = code_map.replace_block(page, f"{code_map.BEGIN}\nnew table\n{code_map.END}\n")
+    assert new == f"# Code map\n\nProse.\n\n{code_map.BEGIN}\nnew table\n{code_map.END}\n\n## After\n"
+    try:
+        code_map.replace_block("# Code map without markers\n", "x")
+    except SystemExit as refused:
+        assert "markers" in str(refused)
+    else:
+        raise AssertionError("a page without markers was written")
+    file = tmp_path / "m.py"
+    file.write_text(
+        "from typing import TYPE_CHECKING\nfrom mapless.errors import X\n"
+        "if TYPE_CHECKING:\n    from mapless.sim.env import NavEnv\n"
+        "def f():\n    import mapless.train.ppo\n    from mapless import config\n"
+    )
+    assert code_map.imports_of(file) == {
+        "errors.py": True,
+        "sim/": True,
+        "train/": False,
+        "config.py": False,
+    }
+
+
 def test_the_cli_page_has_a_section_per_command_with_its_flags() -> None:
     from mapless.cli.docs import render_cli
 
