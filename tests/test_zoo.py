@@ -291,3 +291,36 @@ def test_a_zoo_root_is_taken_from_the_argument_then_the_variable(tmp_path, monke
     assert zoo.zoo_root(tmp_path / "arg") == tmp_path / "arg"
     monkeypatch.delenv(zoo.ROOT_VARIABLE)
     assert zoo.zoo_root() == Path(zoo.__file__).parents[1] / "data" / "zoo"
+
+
+def test_add_reads_the_choice_and_settings_of_an_evaluation_cache_and_of_an_experiment_report(
+    added, fixture_scenes, tmp_path, capsys
+):
+    from mapless.evaluate.runner import AgentSpec, EvalSettings
+    from mapless.evaluate.selection import cached_evaluate
+
+    run = added["runs"]["mlp"]
+    snapshot = sorted((run / "checkpoints").glob("model_*.pt"))[0]
+    cache = tmp_path / "test_snapshot.json"
+    settings = EvalSettings(batch_size=4, workers=1, seed=5, category_set="mjolnir101")
+    library = LibrarySpec(factory="train_fixtures:fixture_library")
+    cached = cached_evaluate(
+        AgentSpec(checkpoint=str(snapshot)), _episodes(), settings, library, cache
+    ).results
+    assert _add(added, "mlp", "--model", "mlp_cache", "--results", str(cache)) == 0
+    manifest = zoo.entry("zoo:tiny-smoke/mlp_cache").manifest
+    assert manifest["snapshot"]["file"] == snapshot.name and manifest["eval_settings"]["seed"] == 5
+    assert zoo.entry("zoo:tiny-smoke/mlp_cache").results()[0] == cached
+    # An experiment report: the run's seed among the model's runs, and the snapshot its selection chose.
+    other = {"run_dir": str(tmp_path / "another_run"), "selection": {"chosen": "elsewhere.pt"}}
+    mine = {"run_dir": str(run), "selection": {"chosen": str(snapshot)}}
+    episodes = [[r.to_dict() for r in cached]]
+    report = {"models": [{"model": "mlp", "runs": [other, mine], "episodes": [episodes[0], episodes[0]]}]}
+    (tmp_path / "table1.json").write_text(json.dumps(report))
+    assert _add(added, "mlp", "--model", "mlp_report", "--results", f"{tmp_path / 'table1.json'}:mlp") == 0
+    assert zoo.entry("zoo:tiny-smoke/mlp_report").manifest["snapshot"]["file"] == snapshot.name
+    report["models"][0]["runs"] = [other]
+    report["models"][0]["episodes"] = [episodes[0]]
+    (tmp_path / "table1.json").write_text(json.dumps(report))
+    assert _add(added, "mlp", "--model", "mlp_none", "--results", f"{tmp_path / 'table1.json'}:mlp") == 2
+    assert f"holds no results of {run}" in capsys.readouterr().err
