@@ -127,8 +127,8 @@ class ContextVectorMetaModel(LearnedLossMixin, RecurrentNavModel):
     def _hierarchical_gcn(self, in_view: Tensor) -> Tensor:
         shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))
         x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, hidden]
-        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
-        x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 64]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 64]
         return x.permute(1, 2, 0)
 
     def describe(self, obs: dict[str, Tensor]) -> dict[str, Tensor]:

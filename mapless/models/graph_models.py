@@ -55,8 +55,8 @@ class ScenePriorsGraph(nn.Module):
         class_embed = self.get_class_embed(in_view)
         shared = self.shared_term() if shared is None else shared
         x = F.relu(shared_row_gcn_layer(self.A, class_embed, shared, self.W0), inplace=True)  # [C, B, 1024]
-        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
-        x = F.relu(gcn_layer(self.A, x, self.W2), inplace=True)  # [C, B, 1]
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        x = F.relu(gcn_layer(self.A, x, self.W2))  # [C, B, 1]
         return self.final_mapping(x.squeeze(-1).T)
 
 

@@ -46,16 +46,14 @@ def shared_row_gcn_layer(adjacency: Tensor, in_view: Tensor, shared: Tensor, lay
     Every node's row starts with the same in-view vector ``v``, so ``Â · [1 vᵀ]`` is
     ``rowsum(Â) vᵀ``: the layer is ``rowsum(Â) ⊗ (W_v v) + Â · F · W_Fᵀ`` (exact up to rounding),
     and the second term depends on the parameters alone, so callers compute it once for as long as
-    they stay fixed (:meth:`NavModel.fixed_term`). The outer product is a matrix product with one
-    column, and the shared term is added in place: the ``[C, B, out]`` result is written once, in the
-    products' dtype (bfloat16 under autocast), and its backward reduces the gradient with two
-    matrix-vector products instead of forming two more tensors of its size. Callers may apply their
-    activation in place.
+    they stay fixed (:meth:`NavModel.fixed_term`). The outer product is a broadcast product and the
+    shared term is added in place: the ``[C, B, out]`` result is written once, in the products' dtype
+    (bfloat16 under autocast), and is a tensor of its own, not a view, so callers may apply their
+    activation in place without autograd copying its base back in the backward pass.
     """
     per_episode = in_view @ layer.weight[:, : in_view.shape[-1]].T  # [B, out]
-    nodes, (batch, width) = adjacency.shape[0], per_episode.shape
-    outer = torch.mm(adjacency.sum(-1, keepdim=True), per_episode.reshape(1, batch * width))
-    out = outer.view(nodes, batch, width).add_(shared.unsqueeze(1).to(outer.dtype))
+    out = adjacency.sum(-1).view(-1, 1, 1).to(per_episode.dtype) * per_episode.unsqueeze(0)
+    out = out.add_(shared.unsqueeze(1).to(out.dtype))
     return out if layer.bias is None else out.add_(layer.bias.to(out.dtype))
 
 
@@ -70,7 +68,9 @@ def propagate(adjacency: Tensor, x: Tensor) -> Tensor:
 
     The GCNs keep their activations node-major because both of their products are then plain
     matrix products (``Â`` on the left of ``[C, B·F]``, ``W`` on the right of ``[C·B, F]``); the
-    batch-major layout made every ``Â ·`` a transpose copy and a batched product."""
+    batch-major layout made every ``Â ·`` a transpose copy and a batched product. The result is a
+    view of the product: an activation in place on it would make autograd copy the whole product
+    twice in the backward pass, so callers apply theirs out of place."""
     return (adjacency @ x.reshape(x.shape[0], -1)).reshape(x.shape)
 
 

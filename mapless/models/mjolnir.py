@@ -56,8 +56,8 @@ class ObjectGcnMixin:
         # Every node sees all detections: X0 = [in-view vector repeated per node || node GloVe].
         shared = self.fixed_term("gcn", lambda: shared_gcn_term(self.A, self.all_glove, self.W0))
         x = F.relu(shared_row_gcn_layer(self.A, in_view, shared, self.W0), inplace=True)  # [C, B, C + 300]
-        x = F.relu(gcn_layer(self.A, x, self.W1), inplace=True)
-        return F.relu(gcn_layer(self.A, x, self.W2), inplace=True).transpose(0, 1)
+        x = F.relu(gcn_layer(self.A, x, self.W1))
+        return F.relu(gcn_layer(self.A, x, self.W2)).transpose(0, 1)
 
 
 class MjolnirObjectModel(ObjectGcnMixin, SavnEmbeddingMixin, RecurrentNavModel):
