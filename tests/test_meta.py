@@ -276,3 +276,71 @@ def test_dropping_ended_episodes_changes_nothing(name, first_order):
     assert compact_loss == pytest.approx(full_loss, rel=1e-12)
     for n in full:
         assert torch.allclose(compact[n], full[n], atol=1e-10, rtol=1e-8), n
+
+
+def per_step_replay(loop, obs, prev_policy, mask, columns):
+    """The adaptive replay as the PPO trainer wrote it before :meth:`InnerLoop.replay`: the slots
+    ``columns`` of a recorded segment (``mask [T, N]`` float) stepped one at a time, each step
+    selecting its running episodes' rows out of the whole segment."""
+    mask = mask[:, columns]
+    steps, batch = int(mask.sum(0).max()), len(columns)
+    state = loop.start(batch)
+    hidden = loop.model.initial_state(batch)
+    rows = torch.arange(batch)
+    logits, values = [], []
+    for t in range(steps):
+        episodes = columns.index_select(0, rows)
+        step_obs = {k: v[t].index_select(0, episodes) for k, v in obs.items()}
+        out = loop.forward(state, step_obs, hidden, prev_policy[t].index_select(0, episodes))
+        alive = (
+            (mask[t + 1].index_select(0, rows) > 0) if t + 1 < len(mask) else mask.new_zeros(len(rows)).bool()
+        )
+        loop.observe(state, out, alive)
+        logits.append(out.logits.new_zeros(batch, out.logits.shape[-1]).index_copy(0, rows, out.logits))
+        values.append(out.value.new_zeros(batch).index_copy(0, rows, out.value.reshape(-1)))
+        hidden = out.hidden
+        if t + 1 < steps and not bool(alive.all()):
+            keep = alive.nonzero().squeeze(1)
+            loop.compact(state, keep)
+            rows = rows.index_select(0, keep)
+            hidden = tuple(h.index_select(0, keep) for h in hidden)
+    return torch.stack(logits), torch.stack(values), state
+
+
+@pytest.mark.parametrize("first_order", [False, True])
+@pytest.mark.parametrize("name", ["cvmeta", "savn"])
+def test_replay_of_whole_episodes_equals_the_per_step_replay(name, first_order):
+    """:meth:`InnerLoop.replay` of a minibatch of a recorded segment (its columns taken first) gives
+    the outputs and meta-gradient of the per-step replay, in float64 to 1e-9."""
+    model, knowledge = make_model(name, max_updates=3)
+    steps, slots = 12, 5
+    obs_list, _, _ = make_episodes(knowledge, steps, B=slots, seed=3)
+    obs = {k: torch.stack([o[k] for o in obs_list]) for k in obs_list[0]}
+    gen = torch.Generator().manual_seed(4)
+    prev_policy = torch.softmax(torch.randn(steps, slots, 6, generator=gen, dtype=torch.float64), -1)
+    # Episodes end inside a chunk, at a chunk's end, on their first step, and the longest one is
+    # shorter than the segment (its last rows are padding).
+    lengths = [9, 2, 6, 1, 4]
+    mask = torch.stack([torch.arange(steps) < n for n in lengths], dim=1).double()
+    columns = torch.tensor([4, 0, 2, 1])  # a minibatch: a permuted subset of the slots
+    weights = torch.randn(steps, len(columns), 6, generator=gen, dtype=torch.float64)
+    results = []
+    for new in (True, False):
+        model.zero_grad(set_to_none=True)
+        loop = InnerLoop(model, first_order=first_order)
+        if new:
+            selected = {k: v[:, columns] for k, v in obs.items()}
+            logits, values, state = loop.replay(selected, prev_policy[:, columns], mask[:, columns] > 0)
+        else:
+            logits, values, state = per_step_replay(loop, obs, prev_policy, mask, columns)
+        assert state.updates == 2  # the longest episode (9 steps, k = 3) adapts after steps 3 and 6
+        objective = ((logits * weights[: len(logits)]).sum(-1) + values) * mask[: len(logits), columns]
+        loop.backward(state, objective.sum())
+        results.append((logits.detach(), values.detach(), grads_of(model)))
+    (logits, values, grads), (ref_logits, ref_values, ref_grads) = results
+    assert logits.shape == (9, 4, 6)
+    torch.testing.assert_close(logits, ref_logits, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(values, ref_values, rtol=1e-9, atol=1e-9)
+    assert grads.keys() == ref_grads.keys() and any(g.abs().sum() > 0 for g in grads.values())
+    for n in grads:
+        torch.testing.assert_close(grads[n], ref_grads[n], rtol=1e-9, atol=1e-9, msg=n)

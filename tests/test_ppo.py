@@ -124,13 +124,12 @@ def test_replay_reproduces_the_acting_policy(model: str) -> None:
     segment = trainer.collector.collect(12 if model == "a3c" else 8, trainer.rng)
     if model == "a3c":
         assert segment.starts[1:].any(), "the fixture's episodes should end inside the segment"
-    columns = torch.arange(4)
     if trainer.inner is None:
         logits, values = trainer.model.replay(
             segment.obs, segment.prev_policy, segment.starts, segment.hidden
         )
     else:
-        logits, values, _ = trainer.replay_episodes(segment, columns)
+        logits, values, _ = trainer.inner.replay(segment.obs, segment.prev_policy, segment.mask > 0)
     steps = logits.shape[0]
     log_prob = torch.log_softmax(logits, -1).gather(-1, segment.actions[:steps, :, None]).squeeze(-1)
     mask = segment.mask[:steps] > 0
@@ -187,7 +186,10 @@ def test_adaptive_replay_meta_gradient_is_the_sum_of_per_episode_ones(model: str
     def gradient(columns: list[int]) -> list[torch.Tensor]:
         trainer.optimizer.zero_grad(set_to_none=True)
         index = torch.tensor(columns)
-        logits, values, state = trainer.replay_episodes(segment, index)
+        obs = {k: v[:, index] for k, v in segment.obs.items()}
+        logits, values, state = trainer.inner.replay(
+            obs, segment.prev_policy[:, index], segment.mask[:, index] > 0
+        )
         steps = logits.shape[0]
         mask = segment.mask[:steps, index]
         objective = ((logits * weights[:steps, index]).sum(-1) + values) * mask

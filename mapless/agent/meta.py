@@ -161,6 +161,40 @@ class InnerLoop(FastWeightForward):
         if state.left is not None:
             self._set_low_rank(state, state.left.index_select(0, keep), state.right.index_select(0, keep))
 
+    def replay(
+        self, obs: dict[str, Tensor], prev_policy: Tensor, acted: Tensor
+    ) -> tuple[Tensor, Tensor, InnerLoopState]:
+        """``(logits [T', B, A], values [T', B], state)``: a segment of ``B`` whole episodes replayed
+        through the inner loop from the current parameters, the adaptive counterpart of
+        :meth:`~mapless.models.base.RecurrentNavModel.replay` (PPO's update).
+
+        ``obs [T, B, ...]`` and ``prev_policy [T, B, 6]`` as recorded while acting; ``acted [T, B]``
+        (bool): the steps each episode took, from its first step on (every episode starts at row 0,
+        from the zero state). ``T'`` is the longest episode. Only the episodes still running are
+        stepped: an episode that ended leaves the batch (:meth:`compact`), and its later outputs are
+        zeros for the loss to mask out. :meth:`backward` with ``state`` carries a loss of the outputs
+        into ``.grad``."""
+        steps, batch = int(acted.sum(0).max()), acted.shape[1]
+        device = prev_policy.device
+        state = self.start(batch)
+        hidden = self.model.initial_state(batch, device)
+        rows = torch.arange(batch, device=device)  # the running episodes' columns
+        logits, values = [], []
+        for t in range(steps):
+            step_obs = {key: value[t].index_select(0, rows) for key, value in obs.items()}
+            out = self.forward(state, step_obs, hidden, prev_policy[t].index_select(0, rows))
+            alive = acted[t + 1].index_select(0, rows) if t + 1 < len(acted) else acted.new_zeros(len(rows))
+            self.observe(state, out, alive)
+            logits.append(out.logits.new_zeros(batch, out.logits.shape[-1]).index_copy(0, rows, out.logits))
+            values.append(out.value.new_zeros(batch).index_copy(0, rows, out.value.reshape(-1)))
+            hidden = out.hidden
+            if t + 1 < steps and not bool(alive.all()):
+                keep = alive.nonzero().squeeze(1)
+                self.compact(state, keep)
+                rows = rows.index_select(0, keep)
+                hidden = tuple(h.index_select(0, keep) for h in hidden)
+        return torch.stack(logits), torch.stack(values), state
+
     # -- inner step ----------------------------------------------------------------------------
     def adapt(self, state: InnerLoopState, rows: Tensor, active: Tensor) -> None:
         """One inner SGD step of the episodes where ``active`` (``[B]`` bool) on ``rows [B, k, H+6]``."""

@@ -44,7 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapless.agent.meta import InnerLoop
+from mapless.agent.meta import InnerLoop, InnerLoopState
 from mapless.models.memo import InViewMemo
 from mapless.train import distributed as dist
 from mapless.train.monitor import RunMonitor
@@ -181,19 +181,16 @@ class PPOTrainer(SynchronousTrainer):
         if ppo.normalize_advantages and bool((mask > 0).any()):  # none: every step out of the loss
             valid = advantage[mask > 0]
             advantage = (advantage - valid.mean()) / (valid.std(unbiased=False) + 1e-8)
+        # Whole episodes: a slot idles after its episode ends; its padded steps go unencoded.
+        acted = segment.mask[:, columns] > 0 if self.collector.whole_episodes else None
         with self.model.memoizing_in_view(InViewMemo(max_rows=None)):
-            if self.inner is None:
-                obs = {k: v[:, columns] for k, v in segment.obs.items()}
-                hidden = tuple(t.index_select(0, columns) for t in segment.hidden)
-                starts = segment.starts[:, columns]
-                # Whole episodes: a slot idles after its episode ends; its padded steps go unencoded.
-                acted = mask > 0 if self.collector.whole_episodes else None
-                logits, values = self.model.replay(
-                    obs, segment.prev_policy[:, columns], starts, hidden, acted
-                )
-                state = None
-            else:
-                logits, values, state = self.replay_episodes(segment, columns)
+            logits, values, state = self._replay(
+                {k: v[:, columns] for k, v in segment.obs.items()},
+                segment.prev_policy[:, columns],
+                segment.starts[:, columns],
+                tuple(t.index_select(0, columns) for t in segment.hidden),
+                acted,
+            )
         steps = logits.shape[0]
         loss = ppo_loss(
             logits,
@@ -230,41 +227,23 @@ class PPOTrainer(SynchronousTrainer):
                     param.grad = None
         return PPOLoss(*(t.detach() for t in loss))
 
-    def replay_episodes(self, segment: Segment, columns: Tensor) -> tuple[Tensor, Tensor, Any]:
-        """The slots ``columns`` of an adaptive model's ``segment`` of whole episodes replayed
-        through the meta-learning inner loop, adapted from the current parameters: logits
-        ``[T, B, A]``, values ``[T, B]`` and the inner loop's state, through which
-        ``self.inner.backward(state, loss)`` carries a loss of them into ``.grad`` (the adaptive
-        counterpart of :meth:`~mapless.models.base.RecurrentNavModel.replay`; :meth:`minibatch_step` calls it).
-
-        Only the episodes still running are stepped (``rows``: their positions in ``columns``); an
-        episode that ended leaves the inner loop's batch (:meth:`InnerLoop.compact`), and its later
-        outputs are zeros that the loss masks out."""
-        mask = segment.mask[:, columns]
-        steps, batch = int(mask.sum(0).max()), len(columns)
-        state = self.inner.start(batch)
-        hidden = self.model.initial_state(batch, self.device)
-        rows = torch.arange(batch, device=self.device)
-        logits, values = [], []
-        for t in range(steps):
-            episodes = columns.index_select(0, rows)
-            obs = {k: v[t].index_select(0, episodes) for k, v in segment.obs.items()}
-            out = self.inner.forward(state, obs, hidden, segment.prev_policy[t].index_select(0, episodes))
-            alive = (
-                (mask[t + 1].index_select(0, rows) > 0)
-                if t + 1 < len(mask)
-                else mask.new_zeros(len(rows)).bool()
-            )
-            self.inner.observe(state, out, alive)
-            logits.append(out.logits.new_zeros(batch, out.logits.shape[-1]).index_copy(0, rows, out.logits))
-            values.append(out.value.new_zeros(batch).index_copy(0, rows, out.value.reshape(-1)))
-            hidden = out.hidden
-            if t + 1 < steps and not bool(alive.all()):
-                keep = alive.nonzero().squeeze(1)
-                self.inner.compact(state, keep)
-                rows = rows.index_select(0, keep)
-                hidden = tuple(h.index_select(0, keep) for h in hidden)
-        return torch.stack(logits), torch.stack(values), state
+    def _replay(
+        self,
+        obs: dict[str, Tensor],
+        prev_policy: Tensor,
+        starts: Tensor,
+        hidden: tuple[Tensor, Tensor],
+        acted: Tensor | None,
+    ) -> tuple[Tensor, Tensor, InnerLoopState | None]:
+        """``(logits, values, inner-loop state)`` of a minibatch's segment under the current
+        parameters: an adaptive model's whole episodes through the inner loop
+        (:meth:`InnerLoop.replay`, from their first step: ``starts`` and ``hidden`` are implied),
+        any other model's through :meth:`~mapless.models.base.RecurrentNavModel.replay` (no state:
+        a loss of its outputs backpropagates as usual)."""
+        if self.inner is not None:
+            return self.inner.replay(obs, prev_policy, acted)
+        logits, values = self.model.replay(obs, prev_policy, starts, hidden, acted)
+        return logits, values, None
 
     def _step(self) -> float:
         dist.all_reduce_gradients(self.params, self.ctx)
