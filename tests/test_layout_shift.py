@@ -108,6 +108,7 @@ def test_the_sampler_mixes_variants_in_and_draws_as_before_without_them(cache_ro
     assert 0.35 < np.mean([s != "FloorPlan425" for s in mixed]) < 0.65
 
 
+@pytest.mark.slow
 def test_a_shifted_set_is_made_on_variants_bit_for_bit(cache_root):
     library = SceneLibrary.builtin(FAST)
 
