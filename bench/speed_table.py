@@ -75,7 +75,8 @@ class Timed:
 def one_update(trainer) -> dict[str, float]:
     """Seconds of rollout, update and replay, and the frames, of one update."""
     collect = Timed(trainer.collector, "collect")
-    replay = Timed(trainer, "replay_episodes")
+    # The adaptive models' minibatches replay through the inner loop (mapless.agent.meta).
+    replay = Timed(trainer.inner if trainer.inner is not None else trainer, "replay")
     start = time.perf_counter()
     result = trainer.update()
     total = time.perf_counter() - start
