@@ -212,12 +212,8 @@ def _copy(tree: Any) -> Any:
 
 def config_of(payload: dict, config_type: type[C]) -> C:
     """The run's config of a checkpoint or model file, as ``config_type`` (the trainers write a
-    :class:`~mapless.train.config.TrainConfig`). A config type whose layout has changed reads the
-    layouts older files stored through its ``upgrade_stored`` static method, so that those files
-    still load and resume."""
-    stored = payload["config"]
-    upgrade = getattr(config_type, "upgrade_stored", None)
-    return from_dict(config_type, upgrade(stored) if upgrade is not None else stored)
+    :class:`~mapless.train.config.TrainConfig`)."""
+    return from_dict(config_type, payload["config"])
 
 
 def model_config_of(payload: dict) -> ModelConfig:

@@ -96,12 +96,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
 
 
 def from_dict(cls: type[T], data: dict, prefix: str = "") -> T:
-    """Build dataclass ``cls`` from a (nested) mapping, rejecting unknown keys. A class whose layout
-    has changed names its moved keys in a ``check_mapping(data, prefix)`` static method, which runs
-    first, so that an old key is refused with where it lives now rather than as unknown."""
-    check = getattr(cls, "check_mapping", None)
-    if check is not None:
-        check(data, prefix)
+    """Build dataclass ``cls`` from a (nested) mapping, rejecting unknown keys."""
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = set(data) - set(fields)

@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "mapless.cli.interop",
     "mapless.cli.evaluate",
     "mapless.cli.train",
+    "mapless.cli.runs",
     "mapless.cli.zoo",
 )
 #: The exit status of a process killed by SIGPIPE (128 + 13), what `yes | head` leaves to the shell.

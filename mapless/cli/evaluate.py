@@ -159,6 +159,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rep.add_argument(
         "--reports", type=Path, default=Path("reports"), help="parent of the report folder EXPERIMENT/"
     )
+    rep.add_argument(
+        "--no-train",
+        action="store_true",
+        help="train nothing: evaluate and report the finished runs found, leave out the rows whose runs "
+        "are not all finished and name the runs that would have been trained",
+    )
+    rep.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved experiment and each run's training config, every key with the layer "
+        "it came from (budget, experiment file, recipe, --set, default), and run nothing",
+    )
     add_cache_argument(rep)
     rep.add_argument(
         "--jobs",
@@ -435,7 +447,17 @@ def _reproduce(args: argparse.Namespace) -> int:
         # training config, which the cache's place must not change; the run processes inherit it.
         os.environ["MAPLESS_CACHE"] = str(args.cache_dir)
     overrides = [*args.set, *([f"eval.protocol={args.protocol}"] if args.protocol else [])]
+    if args.print_config:
+        from mapless.experiments.sources import experiment_text
+
+        print(experiment_text(args.experiment, args.budget, args.config, overrides, args.seeds))
+        return 0
     config = load_experiment(args.experiment, args.budget, args.config, overrides, args.seeds)
+    launcher = _launcher(args)
+    if args.no_train:
+        from mapless.experiments.finished import NoTraining, finished_only
+
+        config, launcher = finished_only(config), NoTraining()
     # The report records the exact command (overrides included) that produced it.
     parts = ["mapless", "reproduce", args.experiment, "--budget", args.budget]
     if args.protocol:
@@ -448,7 +470,9 @@ def _reproduce(args: argparse.Namespace) -> int:
         parts += ["--set", item]
     if args.reports != Path("reports"):
         parts += ["--reports", str(args.reports)]
-    result = reproduce(config, args.reports, command=shlex.join(parts), launcher=_launcher(args))
+    if args.no_train:
+        parts += ["--no-train"]
+    result = reproduce(config, args.reports, command=shlex.join(parts), launcher=launcher)
     if result is not None:
         print(result["markdown"])
     return 0

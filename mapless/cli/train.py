@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from mapless.cli.common import add_cache_argument, add_command, add_sim_override_argument
-from mapless.config import apply_overrides, read_mapping
+from mapless.config import apply_overrides, format_sources, merge_layers, read_mapping, to_dict
 from mapless.configs import train_config_file
 from mapless.episodes.protocols import PROTOCOLS
 
@@ -44,6 +44,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--runs-root", type=Path, default=Path("runs"), help="parent of the default run folder"
     )
     parser.add_argument("--device", help="shortcut for --set device=... (default: the config's, cpu)")
+    parser.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved training config, every key with the layer it came from (recipe, "
+        "CONFIG, --set, default; with --resume: the checkpoint), and train nothing",
+    )
     add_sim_override_argument(parser)
     add_cache_argument(parser)
     parser.add_argument(
@@ -60,7 +66,7 @@ def _train(args: argparse.Namespace) -> int:
     """Train a model: recurrent PPO, or the references' batched or async A3C (docs/guide/training.md).
     Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
-    from mapless.train.recipes import load_train_config
+    from mapless.train.recipes import load_train_config, train_file_layers
     from mapless.train.run import config_edits, default_run_dir, resume_config, train
 
     overrides = config_overrides(args)
@@ -73,6 +79,11 @@ def _train(args: argparse.Namespace) -> int:
         if args.protocol:
             raise ConfigError("a resumed run keeps the success rule it was trained under; drop --protocol")
         config, state = resume_config(args.resume, overrides)
+        if args.print_config:
+            layers = [(str(args.resume / "checkpoint"), state["config"])]
+            layers += [("--set", apply_overrides({}, overrides))] if overrides else []
+            print(format_sources(to_dict(config), merge_layers(layers)[1]))
+            return 0
         run_dir = args.resume
         edits = config_edits(run_dir, state)
         if edits:
@@ -86,6 +97,9 @@ def _train(args: argparse.Namespace) -> int:
         if config_file is None:
             raise ConfigError("mapless train needs CONFIG (or --resume RUN_DIR)")
         config = load_train_config(config_file, overrides)
+        if args.print_config:
+            print(format_sources(to_dict(config), merge_layers(train_file_layers(config_file, overrides))[1]))
+            return 0
         state = None
         run_dir = args.run_dir or default_run_dir(config, args.runs_root, config_file.stem)
     summary = train(config, run_dir, resume=state)

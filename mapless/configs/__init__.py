@@ -38,3 +38,12 @@ def train_config_file(config: str | Path) -> Path:
         hint = " (a YAML file is named by its path: with a '/' or ending in .yaml)"
         raise UnknownNameError("shipped training config", text, names, ", ".join(names) + hint)
     return configs_dir() / f"{text}.yaml"
+
+
+def config_label(path: Path) -> str:
+    """How ``--print-config`` names a config file's layer: its place among the shipped configs
+    (``budgets/small.yaml``), or the path it was given by."""
+    try:
+        return str(Path(path).resolve().relative_to(configs_dir().resolve()))
+    except ValueError:
+        return str(path)

@@ -26,7 +26,7 @@ from mapless.config import (
     read_extending,
     section,
 )
-from mapless.configs import configs_dir
+from mapless.configs import config_label, configs_dir
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError, UnknownNameError
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -213,20 +213,12 @@ def shipped_experiment(experiment: str, budget: str) -> Path | dict:
     return {"experiment": experiment, "budget": budget}
 
 
-def _label(path: Path) -> str:
-    """A config file's layer name: its place among the shipped configs, or its path."""
-    try:
-        return str(path.resolve().relative_to(configs_dir().resolve()))
-    except ValueError:
-        return str(path)
-
-
 def budget_layers(budget: str, directory: Path | None = None) -> list[Layer]:
     """The shipped ``budgets/<budget>.yaml`` (``directory``: the budgets folder, tests) as layers, the
     budgets it ``extends:`` first (``medium`` is ``small`` for longer)."""
     if budget not in BUDGETS:
         raise UnknownNameError("budget", budget, BUDGETS)
-    return read_extending((directory or budget_path(budget).parent) / f"{budget}.yaml", _label)
+    return read_extending((directory or budget_path(budget).parent) / f"{budget}.yaml", config_label)
 
 
 def read_budget(budget: str, directory: Path | None = None) -> dict:
@@ -239,7 +231,7 @@ def experiment_layers(source: Path | dict, overrides: list[str] | None = None) -
     budgets that one extends), the experiment file (with the files it extends; a mapping stands for
     an experiment with no file), then ``--set`` ``overrides``. One naming no budget stands alone."""
     if isinstance(source, Path):
-        own = read_extending(source, _label)
+        own = read_extending(source, config_label)
     else:
         own = [(f"the {source.get('budget')} budget as it is (no experiment file)", dict(source))]
     named = merge_layers(own)[0].get("budget")

@@ -13,52 +13,22 @@ from pathlib import Path
 
 from mapless.config import to_dict
 from mapless.experiments.config import ExperimentConfig
-from mapless.models.registry import model_class, model_folder_name
-from mapless.train.config import to_legacy_layout
+from mapless.models.registry import model_folder_name
 
 
 def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
-    """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over the whole training config
-    (the progress bar aside), so experiments with an identical run share it."""
-    # The hash reads the layout the runs were made in (the A3C settings as optim:, loss: and three
-    # top-level keys, the rewards as six keys of env:, before 2fdbb67 gathered them into a3c: and
-    # env.reward:): the same values, the same folders.
-    data = to_legacy_layout(to_dict(dataclasses.replace(train_cfg, progress=False)))
-    del data["logger"]  # where the records go changes no run
-    # Keys added after runs were made are hashed only where they change training, so that finished
-    # runs whose training they do not change keep their folders.
-    for path, changes_training in _LATER_KEYS:
-        if not changes_training(train_cfg):
-            section, key = path.split(".")
-            del data[section][key]
-    blob = json.dumps(data, sort_keys=True)
-    digest = hashlib.sha256(blob.encode()).hexdigest()[:8]
+    """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over what the run trains with
+    (:func:`run_hash`), so experiments with an identical run share it."""
     model = model_folder_name(train_cfg.model.name)
-    return Path(config.runs_dir) / f"{model}__{variant}__s{train_cfg.seed}__{digest}"
+    return Path(config.runs_dir) / f"{model}__{variant}__s{train_cfg.seed}__{run_hash(train_cfg)}"
 
 
-def _meta_learns_under_ppo(train_cfg) -> bool:
-    """PPO's whole episodes through the inner loop: only adaptive models that keep meta-learning."""
-    return (
-        train_cfg.algo == "ppo"
-        and model_class(train_cfg.model.name).is_adaptive()
-        and train_cfg.model.adapt != "none"
-    )
-
-
-#: ``section.key`` of the training-config keys added after runs were made, each with the rule that
-#: says whether it changes a run's training.
-_LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
-    ("env.layouts", lambda c: c.env.layouts != type(c.env.layouts)()),
-    ("model.semantic_map", lambda c: c.model.semantic_map),
-    ("model.context_distance", lambda c: c.model.context_distance),
-    ("ppo.bootstrap_time_limit", lambda c: c.ppo.bootstrap_time_limit and _meta_learns_under_ppo(c)),
-    ("meta.navigation_loss", _meta_learns_under_ppo),
-    ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
-    ("env.parent_reward_rule", lambda c: c.parent_reward),
-    ("meta.train_learned_loss", lambda c: not c.meta.train_learned_loss),
-    ("ppo.whole_episodes", lambda c: c.ppo.whole_episodes and not _meta_learns_under_ppo(c)),
-)
+def run_hash(train_cfg) -> str:
+    """Eight hex digits of the SHA-256 of the training config as it is laid out, less what changes
+    no run: the progress bar and where the records go (``logger``)."""
+    data = to_dict(dataclasses.replace(train_cfg, progress=False))
+    del data["logger"]
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:8]
 
 
 @dataclass

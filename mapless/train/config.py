@@ -7,7 +7,6 @@ loaded or any worker is started.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import re
@@ -187,7 +186,9 @@ NAVIGATION_LOSSES = ("episode", "after_interaction")
 
 @dataclass(frozen=True)
 class MetaConfig:
-    """Meta-learning of adaptive models (savn, gve, spatt, cvmeta); ignored by the others.
+    """Meta-learning of adaptive models (savn, gve, spatt, cvmeta). ``first_order`` is read by both
+    algorithms; the other three only by PPO, for a model that meta-learns, and are refused
+    elsewhere (:data:`PPO_META_KEYS`).
 
     first_order: first-order meta-gradient instead of SAVN's second order.
     navigation_loss: which steps of an episode the outer (navigation) loss reads under PPO:
@@ -218,6 +219,11 @@ class MetaConfig:
             "meta.navigation_loss",
             f"{self.navigation_loss!r} is not one of {NAVIGATION_LOSSES}",
         )
+
+
+#: The meta-learning settings only PPO reads, and only for a model that meta-learns; set
+#: anywhere else they are refused (:meth:`TrainConfig._check_ppo_meta_keys`).
+PPO_META_KEYS = ("navigation_loss", "learned_loss_from_imitation", "train_learned_loss")
 
 
 @dataclass(frozen=True)
@@ -296,97 +302,6 @@ def _changed_keys(block: object) -> list[str]:
     """The fields of a settings block that differ from its defaults."""
     default = type(block)()
     return [f.name for f in dataclasses.fields(block) if getattr(block, f.name) != getattr(default, f.name)]
-
-
-#: Where each training-config key of the old layout (before 2fdbb67) lives now (old path, new path): the
-#: A3C settings, once the ``optim:`` and ``loss:`` blocks and three top-level keys, are ``a3c:``; the
-#: reward settings, once six keys of ``env:``, are ``env.reward:``.
-A3C_KEYS: tuple[tuple[str, str], ...] = (
-    *(
-        (f"optim.{k}", f"a3c.{k}")
-        for k in ("lr", "beta1", "beta2", "eps", "amsgrad", "grad_clip", "meta_grad_clip")
-    ),
-    *((f"loss.{k}", f"a3c.{k}") for k in ("gamma", "tau", "beta", "value_coef")),
-    *((k, f"a3c.{k}") for k in ("mode", "batch_size", "workers")),
-)
-REWARD_KEYS: tuple[tuple[str, str], ...] = tuple(
-    (f"env.{k}", f"env.reward.{k}")
-    for k in (
-        "step_penalty",
-        "success_reward",
-        "parent_reward",
-        "parent_reward_rule",
-        "progress_reward",
-        "parent_reward_rooms",
-    )
-)
-LEGACY_KEYS = A3C_KEYS + REWARD_KEYS
-
-#: What each group of moved keys became, for the error that refuses an old key.
-_MOVED = (
-    (
-        A3C_KEYS,
-        "the A3C settings (the former optim: and loss: blocks, mode, batch_size, workers) are one "
-        "a3c: block beside ppo:",
-    ),
-    (
-        REWARD_KEYS,
-        "the reward settings (the former env: keys "
-        + ", ".join(old.split(".")[1] for old, _ in REWARD_KEYS)
-        + ") are one env.reward: block (mapless.sim.task.RewardConfig)",
-    ),
-)
-
-
-def _has_path(data: dict, path: str) -> bool:
-    *sections, key = path.split(".")
-    for section in sections:
-        data = data.get(section)
-        if not isinstance(data, dict):
-            return False
-    return key in data
-
-
-def _move_keys(data: dict, moves: list[tuple[str, str]]) -> dict:
-    """``data`` (not modified) with the value at each ``old`` path moved to its ``new`` path; a
-    section emptied by the moves is dropped (the layout it belonged to has no such section)."""
-    out = copy.deepcopy(data)
-    emptied = set()
-    for old, new in moves:
-        if not _has_path(out, old):
-            continue
-        *sections, key = old.split(".")
-        node = out
-        for section in sections:
-            node = node[section]
-        value = node.pop(key)
-        if sections and not node:
-            emptied.add(tuple(sections))
-        *sections, key = new.split(".")
-        node = out
-        for section in sections:
-            node = node.setdefault(section, {})
-        node[key] = value
-    for sections in sorted(emptied, key=len, reverse=True):
-        *parents, last = sections
-        node = out
-        for section in parents:
-            node = node[section]
-        if not node[last]:
-            del node[last]
-    return out
-
-
-def from_legacy_layout(data: dict) -> dict:
-    """A training-config mapping of the old layout (:data:`LEGACY_KEYS`) in today's layout (same values)."""
-    return _move_keys(data, list(LEGACY_KEYS))
-
-
-def to_legacy_layout(data: dict) -> dict:
-    """A training-config mapping (``to_dict`` of a :class:`TrainConfig`) in the old layout,
-    which the run-folder hash reads (:func:`mapless.experiments.runs.run_dir_for`) so that every run
-    keeps its folder."""
-    return _move_keys(data, [(new, old) for old, new in LEGACY_KEYS])
 
 
 #: What a TrainConfig's ``logger`` may list (mapless.train.monitor writes to each).
@@ -480,11 +395,7 @@ class TrainConfig:
                 f"{self.algo}: block; remove the {other}: settings ({', '.join(changed)}) "
                 f"or set algo: {other}"
             )
-        _require(
-            self.algo == "ppo" or self.meta.train_learned_loss,
-            "meta.train_learned_loss",
-            "a frozen learned loss is implemented for the PPO trainer only; set algo: ppo",
-        )
+        self._check_ppo_meta_keys(model)
         _require(
             self.algo == "a3c" or self.precision == "fp32",
             "precision",
@@ -517,28 +428,30 @@ class TrainConfig:
             f"{self.model.category_set!r} differs from env.sim.category_set {self.env.sim.category_set!r}",
         )
 
+    def _check_ppo_meta_keys(self, model: type) -> None:
+        """Refuses a setting of :data:`PPO_META_KEYS` that the run would ignore, saying where it is read."""
+        default = MetaConfig()
+        changed = [k for k in PPO_META_KEYS if getattr(self.meta, k) != getattr(default, k)]
+        if not changed:
+            return
+        where = (
+            "it belongs to the PPO trainer's meta-learning: algo: ppo with an adaptive model "
+            f"({', '.join(n for n, c in MODELS.items() if c.is_adaptive())}) whose model.adapt is not none"
+        )
+        if self.algo != "ppo":
+            raise ConfigError(
+                f"config key 'meta.{changed[0]}': algo is {self.algo}, which ignores it; {where}"
+            )
+        if not model.is_adaptive() or self.model.adapt == "none":
+            raise ConfigError(
+                f"config key 'meta.{changed[0]}': model {self.model.name!r} (model.adapt {self.model.adapt}) "
+                f"does not meta-learn, so the run would ignore it; {where}"
+            )
+
     @property
     def mode(self) -> str:
         """How the run trains: ``a3c.mode`` under A3C; PPO always runs batched."""
         return self.a3c.mode if self.algo == "a3c" else "batched"
-
-    @staticmethod
-    def upgrade_stored(data: dict) -> dict:
-        """A config stored in the old layout (checkpoints, model files, with the A3C settings and the
-        rewards in their old places) read into today's layout."""
-        return from_legacy_layout(data)
-
-    @staticmethod
-    def check_mapping(data: dict, prefix: str = "") -> None:
-        """Refuses a key of the old layout (:data:`LEGACY_KEYS`), saying where it lives now
-        (:func:`mapless.config.from_dict` calls this before it reads the fields)."""
-        for keys, what in _MOVED:
-            for old, new in keys:
-                if _has_path(data, old):
-                    raise ConfigError(
-                        f"config key {prefix + old!r} has moved to {prefix + new!r}: {what} "
-                        f'(docs/guide/training.md, "Configuration"); write it there'
-                    )
 
     @property
     def parent_reward(self) -> bool:

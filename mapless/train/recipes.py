@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from mapless.config import ConfigError, Layer, apply_overrides, from_dict, merge_layers, read_mapping, section
-from mapless.configs import configs_dir
+from mapless.configs import config_label, configs_dir
 from mapless.errors import UnknownNameError
 from mapless.models import MODELS, ModelConfig
 from mapless.train.config import TrainConfig
@@ -72,7 +72,7 @@ def with_recipe(data: dict, directory: Path | None = None) -> dict:
 def train_file_layers(path: str | Path | None, overrides: list[str] | None = None) -> list[Layer]:
     """The layers of ``mapless train CONFIG --set ...``, lowest first: the recipe the file (or
     ``--set``) names, the file, ``--set``."""
-    layers = [(str(path), read_mapping(path))] if path is not None else []
+    layers = [(config_label(Path(path)), read_mapping(path))] if path is not None else []
     if overrides:
         layers.append(("--set", apply_overrides({}, overrides)))
     recipe, rest = recipe_layers(layers)

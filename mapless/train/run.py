@@ -43,7 +43,7 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
             f"config key {fixed[0].split('=', 1)[0]!r}: a resumed run keeps its model, seed, algorithm, mode "
             "and batch layout (the checkpoint's state was made with them); start a new run to change them"
         )
-    data = apply_overrides(TrainConfig.upgrade_stored(payload["config"]), overrides or [])
+    data = apply_overrides(payload["config"], overrides or [])
     return from_dict(TrainConfig, data), payload
 
 
@@ -52,10 +52,10 @@ def config_edits(run_dir: str | Path, resume: dict) -> list[str]:
     edit, or a resume stopped before its first checkpoint): a resume trains with the checkpoint's
     and rewrites config.yaml, so each is reported rather than silently undone."""
     try:
-        edited = TrainConfig.upgrade_stored(read_mapping(Path(run_dir) / ckpt.CONFIG_FILE))
+        edited = read_mapping(Path(run_dir) / ckpt.CONFIG_FILE)
     except ConfigError:
         return []
-    stored = TrainConfig.upgrade_stored(resume["config"])
+    stored = resume["config"]
     if ckpt.identity_difference(edited, stored, ("", "")) is not None:
         return []  # another run's checkpoint, which the trainer refuses
 
@@ -179,7 +179,7 @@ def train(
         if resume is not None and ckpt.model_config_of(resume) != config.model:
             raise ConfigError("config key 'model': a run cannot be resumed with another model configuration")
         if resume is not None:
-            stored = TrainConfig.upgrade_stored(resume["config"])
+            stored = resume["config"]
             names = (ckpt.CHECKPOINT_FILE, "the config to resume with")
             if (difference := ckpt.identity_difference(stored, to_dict(config), names)) is not None:
                 raise ConfigError(f"{run_dir} cannot be resumed so: {difference}")
