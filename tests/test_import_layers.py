@@ -13,7 +13,18 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mapless"
 #: mapless/ bottom to top (docs/reference/architecture.md): a module imports only from its own layer or those
 #: below, function-level imports included.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("mapless", "errors", "files", "config", "configs", "actions", "provenance", "safe_pickle", "data"),
+    (
+        "mapless",
+        "errors",
+        "files",
+        "config",
+        "configs",
+        "actions",
+        "observations",
+        "provenance",
+        "safe_pickle",
+        "data",
+    ),
     ("scenes", "knowledge"),  # floor plans, categories, arrangements; the priors over them
     ("sim",),  # the simulator: observations, rewards
     ("offline", "thor", "episodes"),  # other sources of scenes; episode sets and the sampler

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from mapless.models.base import NUM_ACTIONS, ModelOutput, NavModel
-from mapless.sim.vector import OBSERVATION_KEYS
+from mapless.observations import OBSERVATION_KEYS, ObservationSizes, zeros
 
 
 class PolicyMemory:
@@ -60,16 +60,9 @@ def observation_keys(model: NavModel) -> tuple[str, ...]:
     Gathering the 7x7 feature map is the costliest part of a batched environment step, and several
     models (cvmeta, mjolnir_o) never read it, so the environment is asked only for what is used.
     """
-    c = model.num_categories
-    probe = _RecordingObs(
-        context=torch.zeros(1, c, 4),
-        features=torch.zeros(1, model.feature_channels, 7, 7),
-        target_embedding=torch.zeros(1, model.glove_dim),
-        target_index=torch.zeros(1, dtype=torch.long),
-        context_distance=torch.zeros(1, c),
-    )
+    sizes = ObservationSizes(model.num_categories, model.feature_channels, model.glove_dim)
     device = next((p.device for p in model.parameters()), torch.device("cpu"))
-    probe = _RecordingObs({k: v.to(device) for k, v in probe.items()})
+    probe = _RecordingObs({k: v.to(device) for k, v in zeros(sizes).items()})
     was_training = model.training
     model.eval()
     with torch.no_grad():

@@ -36,9 +36,9 @@ from mapless.models.initialisation import glorot_init, init_heads_and_lstm
 from mapless.models.layers import lstm_state_from_gates, lstm_step, scatter_rows
 from mapless.models.memo import InViewMemo
 from mapless.models.roles import ENCODER, LEARNED_LOSS, POLICY, ParameterRoles, assign_roles
+from mapless.observations import GRID as GRID  # the feature map's side, for every model
 from mapless.scenes.catalogue import ROOM_TYPES
 
-GRID = 7  # the 7x7 feature map of docs/guide/simulator.md, "Observations" (ResNet-18 conv5 size)
 EMBED = 64  # SAVN's per-cell embedding width, reused by every model that follows its layout
 
 

@@ -1,13 +1,9 @@
 """Gymnasium environment: one ObjectNav episode at a time in a precomputed scene.
 
-Registered as ``mapless/ObjectNav-v0``. Observation space (docs/guide/simulator.md, "Observations"):
-
-* ``context`` Box float32 ``[C, 4]``: per category ``[in view, x_c, y_c, union-box area]``
-* ``features`` Box float32 ``[C + 3, 7, 7]``: semantic feature map
-* ``target_embedding`` Box float32 ``[300]``: GloVe vector of the target
-* ``target_index`` Box int64 ``[1]``: the target's row in the category set (-1 if none); one
-  element, not a 0-d array, because stable-baselines3's policies refuse 0-d observations
-* ``context_distance`` Box float32 ``[C]``: per category, the distance to its nearest in-view instance
+Registered as ``mapless/ObjectNav-v0``. Observation space: a ``Dict`` of one ``Box`` per key of
+:data:`mapless.observations.OBSERVATION` (docs/guide/simulator.md, "Observations"); a key a row
+holds one number of (``target_index``) is a one-element box, not a 0-d array, because
+stable-baselines3's policies refuse 0-d observations.
 
 Actions: Discrete(6) = MoveAhead, RotateLeft, RotateRight, LookUp, LookDown, Done. The episode
 terminates on ``Done`` (success iff a target instance is visible) and is truncated at the step
@@ -35,12 +31,13 @@ from gymnasium import spaces
 
 from mapless.actions import ACTIONS
 from mapless.errors import MaplessError
+from mapless.observations import OBSERVATION_KEYS, ObservationSizes, gym_space
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.pictures import TopDownFrame
 from mapless.sim.scene_data import SceneData
 from mapless.sim.task import RewardConfig, TargetFields, resolve_target_fields
-from mapless.sim.vector import OBSERVATION_KEYS, BatchedNavEnv
+from mapless.sim.vector import BatchedNavEnv
 
 
 class NavEnv(gym.Env):
@@ -81,15 +78,7 @@ class NavEnv(gym.Env):
         self.fixed_max_steps = max_steps
         n_cat = len(self.targets.categories)
         self.action_space = spaces.Discrete(len(ACTIONS))
-        self.observation_space = spaces.Dict(
-            {
-                "context": spaces.Box(0.0, 1.0, (n_cat, 4), np.float32),
-                "features": spaces.Box(0.0, 1.0, (n_cat + 3, 7, 7), np.float32),
-                "target_embedding": spaces.Box(-np.inf, np.inf, (300,), np.float32),
-                "target_index": spaces.Box(-1, n_cat - 1, (1,), np.int64),
-                "context_distance": spaces.Box(0.0, np.inf, (n_cat,), np.float32),
-            }
-        )
+        self.observation_space = gym_space(ObservationSizes(n_cat))
         self._next_fixed = 0
         #: the batched environment of the current episode's scene (rebuilt when the scene changes)
         self.batched: BatchedNavEnv | None = None
@@ -176,9 +165,8 @@ class NavEnv(gym.Env):
         return self._frames[scene].draw(self.pose, goal, self.visited)
 
     def _observation(self) -> dict:
-        observation = {key: value[0] for key, value in self.batched.observe(OBSERVATION_KEYS).items()}
-        observation["target_index"] = observation["target_index"].reshape(1)
-        return observation
+        observed = self.batched.observe(OBSERVATION_KEYS).items()
+        return {key: value[0].reshape(self.observation_space[key].shape) for key, value in observed}
 
     def _info(self, success: bool, failed: bool) -> dict:
         return {

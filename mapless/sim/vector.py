@@ -19,6 +19,7 @@ import numpy as np
 
 from mapless.actions import DONE, N_MOVEMENT_ACTIONS
 from mapless.knowledge.parents import parent_reward
+from mapless.observations import OBSERVATION_KEYS
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import SceneData
@@ -29,9 +30,6 @@ from mapless.sim.task import (
     max_steps_for,
     resolve_target_fields,
 )
-
-#: Every observation key a model can read (docs/guide/simulator.md, "Observations").
-OBSERVATION_KEYS = ("context", "features", "target_embedding", "target_index", "context_distance")
 
 
 @dataclass
