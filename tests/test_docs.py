@@ -282,7 +282,7 @@ def test_the_code_map_matches_the_source() -> None:
         package / "train" / "ppo_loss.py",
         package / "models" / "base.py",
     } <= a3c
-    assert package / "agent" / "low_rank.py" in cvmeta - a3c  # the inner loop is the adaptive models'
+    assert package / "agent" / "fast_weights.py" in cvmeta - a3c  # the inner loop is the adaptive models'
     assert package / "models" / "a3c.py" in a3c - cvmeta
 
 

@@ -163,8 +163,7 @@ def test_adaptive_agent_adapts_every_k_steps_and_resets_per_episode(episodes):
 def test_test_time_step_matches_the_training_inner_loop(episodes):
     """The evaluator's in-place step with per-slot factor blocks gives the same policy as the
     training inner loop's (differentiable, growing-factor) step on the same rows."""
-    from mapless.agent.adaptation import TestTimeAdaptation
-    from mapless.agent.meta import InnerLoop
+    from mapless.agent.meta import InnerLoop, TestTimeAdaptation
     from mapless.models.synthetic import synthetic_observations
 
     torch.manual_seed(1)

@@ -1,9 +1,10 @@
-"""The deferred factor gradients of mapless.agent.low_rank against plain autograd."""
+"""The deferred factor gradients of the low-rank updates (mapless.agent.fast_weights.LowRankUpdates)
+against plain autograd."""
 
 import pytest
 import torch
 
-from mapless.agent.low_rank import LowRankUpdates, apply_low_rank
+from mapless.agent.fast_weights import LowRankUpdates, apply_low_rank
 
 B, K, GATES, INPUTS = 3, 4, 8, 5
 

@@ -4,8 +4,7 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from mapless.agent.adaptation import TestTimeAdaptation
-from mapless.agent.meta import InnerLoop
+from mapless.agent.meta import InnerLoop, TestTimeAdaptation
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model
 from mapless.models.synthetic import synthetic_observations

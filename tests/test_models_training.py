@@ -6,8 +6,7 @@ The toy task: synthetic observations, reward +1 for MoveAhead (action 0) and -0.
 import pytest
 import torch
 
-from mapless.agent.adaptation import TestTimeAdaptation
-from mapless.agent.meta import InnerLoop
+from mapless.agent.meta import InnerLoop, TestTimeAdaptation
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, model_names
 from mapless.models.synthetic import synthetic_observations

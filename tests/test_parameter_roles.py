@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mapless.agent.adaptation import TestTimeAdaptation
+from mapless.agent.meta import TestTimeAdaptation
 from mapless.knowledge import synthetic_knowledge
 from mapless.models import build_model, registry
 from mapless.models.base import NUM_ACTIONS, RECURRENT_CORE_ROLES, RecurrentNavModel

@@ -101,12 +101,12 @@ def policy_probabilities(logits: Tensor) -> np.ndarray:
 
 class AdaptingActor:
     """Acting with SAVN's inner loop at its test-time setting: every slot's fast weights adapt in
-    place on the learned interaction loss (:class:`~mapless.agent.adaptation.TestTimeAdaptation`)
+    place on the learned interaction loss (:class:`~mapless.agent.meta.TestTimeAdaptation`)
     while θ and φ stay fixed. The evaluator's adaptive agent and PPO's whole-episode collection act
     through it."""
 
     def __init__(self, model: NavModel, batch_size: int):
-        from mapless.agent.adaptation import TestTimeAdaptation
+        from mapless.agent.meta import TestTimeAdaptation
 
         self.loop = TestTimeAdaptation(model)
         # θ stays fixed while acting; only the per-episode fast copies take inner gradients.

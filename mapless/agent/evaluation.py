@@ -79,7 +79,7 @@ class AdaptiveModelAgent(ModelAgent):
 
     Every slot owns fast weights (θ, reset to the trained θ when an episode starts): the small ones as
     per-slot copies, the LSTM matrices as θ plus the slot's low-rank inner-step factors, exactly as
-    in training (:class:`mapless.agent.adaptation.TestTimeAdaptation`). Episodes start at
+    in training (:class:`mapless.agent.meta.TestTimeAdaptation`). Episodes start at
     k-step boundaries, so every slot's k-row buffer covers exactly its last k steps, computed with its
     current fast weights, and one batched ``TestTimeAdaptation.adapt`` serves all slots due for a step.
     """

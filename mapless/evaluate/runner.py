@@ -15,7 +15,7 @@ How it runs:
 * Models run in ``eval()`` mode (dropout off) under ``inference_mode``. Adaptive models (savn, gve,
   spatt, cvmeta) adapt at test time as in training: every k = 6 steps, at most 4 times, one SGD step
   of the parameters the model's roles adapt on the learned interaction loss, with φ frozen, from the trained θ in
-  every episode (:class:`mapless.agent.adaptation.TestTimeAdaptation`). Their inner steps
+  every episode (:class:`mapless.agent.meta.TestTimeAdaptation`). Their inner steps
   are batched, so new episodes start only at k-step boundaries (a slot waits at most k - 1 steps).
 """
 
