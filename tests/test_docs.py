@@ -282,7 +282,12 @@ def test_the_code_map_matches_the_source() -> None:
         package / "train" / "ppo_loss.py",
         package / "models" / "base.py",
     } <= a3c
-    assert package / "agent" / "fast_weights.py" in cvmeta - a3c  # the inner loop is the adaptive models'
+    # The inner loop and φ are the adaptive models' (an update that took no inner step would miss φ).
+    assert {
+        package / "agent" / "meta.py",
+        package / "agent" / "fast_weights.py",
+        package / "models" / "learned_loss.py",
+    } <= cvmeta - a3c
     assert package / "models" / "a3c.py" in a3c - cvmeta
 
 
