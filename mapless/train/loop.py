@@ -31,11 +31,8 @@ class TrainingLoop(abc.ABC):
         self.counters = {"episodes": 0, "frames": 0, "updates": 0}
         self._clock = time.perf_counter()
         self._snapshot_due = False  # the last update crossed a checkpoint boundary, not yet written
-        self._last_snapshot = (
-            0,
-            0,
-            0.0,
-        )  # episodes, frames and seconds at the last checkpoint (snapshots > 0)
+        # Episodes, frames and seconds at the last checkpoint (``snapshots`` > 0).
+        self._last_snapshot = (0, 0, 0.0)
         self.monitor: RunMonitor | None = None  # the run's logs; its state goes into each checkpoint
         # Whether the run has a folder its checkpoints go to (rank 0 alone writes them under torchrun,
         # whose other ranks have no run_dir), and the counters of the last checkpoint there.
@@ -155,11 +152,8 @@ class TrainingLoop(abc.ABC):
             self.counters["updates"],
         )
         self._clock = start
-        self._last_snapshot = (
-            self.counters["episodes"],
-            self.counters["frames"],
-            0.0,
-        )  # a resume counts from here
+        # A resumed run's shares of the budget count from here.
+        self._last_snapshot = (self.counters["episodes"], self.counters["frames"], 0.0)
         first: tuple[float, int] | None = None  # after the first update (warm-up excluded from steady rates)
         stopped = False
         try:
