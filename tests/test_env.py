@@ -361,6 +361,7 @@ def test_progress_reward_telescopes_to_the_change_of_distance(library):
     assert np.abs(expected).max() > 0
 
 
+@pytest.mark.slow
 def test_feature_maps_are_gathered_into_one_array_only_when_read(library):
     scenes = [SCENE, "FloorPlan26"]
     env = BatchedNavEnv(library, scenes, 2)

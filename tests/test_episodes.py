@@ -77,6 +77,7 @@ def test_regeneration_is_bit_for_bit(library):
         assert not data.goal_mask(episode.target)[pose]
 
 
+@pytest.mark.slow
 def test_files_round_trip_and_refuse_another_simulator(tmp_path, library):
     made = evalsets.make_eval_set(library, "val", per_room=3, room_types=("bathroom",))
     path = tmp_path / "eps.json.gz"

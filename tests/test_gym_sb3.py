@@ -31,6 +31,7 @@ def library():
     return scene_library()
 
 
+@pytest.mark.slow
 def test_the_id_needs_no_argument_and_samples_training_episodes_on_the_training_scenes():
     env = gym.make(mapless.ENV_ID)
     assert env.spec.id == "mapless/ObjectNav-v0"

@@ -92,6 +92,7 @@ def test_layouts_list_each_floor_plans_variants():
     )  # the paper's protocol: default arrangements
 
 
+@pytest.mark.slow
 def test_the_sampler_mixes_variants_in_and_draws_as_before_without_them(cache_root):
     library = SceneLibrary.builtin(FAST)
     scenes, variants = ["FloorPlan425"], {"FloorPlan425": ["FloorPlan425@gen:0", "FloorPlan425@gen:1"]}

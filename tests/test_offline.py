@@ -247,6 +247,7 @@ def test_round_trip_built_in_scenes(built_scenes, tmp_path):
             )
 
 
+@pytest.mark.slow
 def test_cli_export_and_check(built_scenes, tmp_path, monkeypatch, capsys):
     import argparse
 

@@ -37,6 +37,7 @@ def test_tensorboard_is_the_default_logger(tmp_path) -> None:
     assert not (tmp_path / "run" / "wandb").exists()
 
 
+@pytest.mark.slow
 def test_a_wandb_run_is_written_in_offline_mode(tmp_path, monkeypatch) -> None:
     wandb = pytest.importorskip("wandb", reason="the wandb extra (in the dev extra) is not installed")
     monkeypatch.setenv("WANDB_MODE", "offline")

@@ -243,6 +243,7 @@ def test_cli_reports_bad_config_before_work(tmp_path: Path, capsys: pytest.Captu
     assert "no checkpoint" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_train_and_resume_on_a_built_scene(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The real path: `mapless train CONFIG.yaml --set ...`, then `--resume RUN_DIR` with a larger budget."""
     config = tmp_path / "train.yaml"

@@ -59,6 +59,7 @@ def _png_size(path) -> tuple[int, int]:
         return image.size
 
 
+@pytest.mark.slow
 def test_eval_render_draws_the_first_n_episodes_of_the_oracle(tmp_path, episode_file) -> None:
     out = tmp_path / "eval"
     argv = [
