@@ -284,7 +284,7 @@ def per_step_replay(loop, obs, prev_policy, mask, columns):
     mask = mask[:, columns]
     steps, batch = int(mask.sum(0).max()), len(columns)
     state = loop.start(batch)
-    hidden = loop.model.initial_state(batch)
+    hidden = tuple(h.double() for h in loop.model.initial_state(batch))
     rows = torch.arange(batch)
     logits, values = [], []
     for t in range(steps):
@@ -306,22 +306,39 @@ def per_step_replay(loop, obs, prev_policy, mask, columns):
     return torch.stack(logits), torch.stack(values), state
 
 
-@pytest.mark.parametrize("first_order", [False, True])
-@pytest.mark.parametrize("name", ["cvmeta", "savn"])
-def test_replay_of_whole_episodes_equals_the_per_step_replay(name, first_order):
-    """:meth:`InnerLoop.replay` of a minibatch of a recorded segment (its columns taken first) gives
-    the outputs and meta-gradient of the per-step replay, in float64 to 1e-9."""
-    model, knowledge = make_model(name, max_updates=3)
-    steps, slots = 12, 5
-    obs_list, _, _ = make_episodes(knowledge, steps, B=slots, seed=3)
+def recorded_segment(knowledge, lengths, steps=12, seed=3):
+    """A segment of ``len(lengths)`` slots whose episodes take ``lengths`` steps from row 0: obs,
+    prev_policy and the float mask; the rows after an episode's end are NaN (float inputs), so any
+    read of them shows in the outputs or gradients."""
+    slots = len(lengths)
+    obs_list, _, _ = make_episodes(knowledge, steps, B=slots, seed=seed)
     obs = {k: torch.stack([o[k] for o in obs_list]) for k in obs_list[0]}
-    gen = torch.Generator().manual_seed(4)
+    gen = torch.Generator().manual_seed(seed + 1)
     prev_policy = torch.softmax(torch.randn(steps, slots, 6, generator=gen, dtype=torch.float64), -1)
-    # Episodes end inside a chunk, at a chunk's end, on their first step, and the longest one is
-    # shorter than the segment (its last rows are padding).
-    lengths = [9, 2, 6, 1, 4]
     mask = torch.stack([torch.arange(steps) < n for n in lengths], dim=1).double()
+    padding = mask == 0
+    for value in (*obs.values(), prev_policy):
+        if value.is_floating_point():
+            value[padding] = float("nan")
+    return obs, prev_policy, mask
+
+
+@pytest.mark.parametrize("max_updates", [3, 1])
+@pytest.mark.parametrize("first_order", [False, True])
+@pytest.mark.parametrize("name", ["cvmeta", "savn", "gve", "spatt"])
+def test_replay_of_whole_episodes_equals_the_per_step_replay(name, first_order, max_updates):
+    """:meth:`InnerLoop.replay` of a minibatch of a recorded segment (its columns taken first) gives
+    the outputs and meta-gradient of the per-step replay, in float64 to 1e-9: the chunks encoded
+    at once (cvmeta, savn; gve's critic input too), and spatt's step-by-step encoder; with
+    ``max_updates = 1`` the last chunk runs from the first inner step to the end."""
+    model, knowledge = make_model(name, max_updates=max_updates)
+    steps = 12
+    # Episodes end inside a chunk (before and after an inner step), at a chunk's end, on their
+    # first step, and the longest one is shorter than the segment (its last rows are padding).
+    lengths = [9, 2, 6, 1, 4]
+    obs, prev_policy, mask = recorded_segment(knowledge, lengths, steps)
     columns = torch.tensor([4, 0, 2, 1])  # a minibatch: a permuted subset of the slots
+    gen = torch.Generator().manual_seed(5)
     weights = torch.randn(steps, len(columns), 6, generator=gen, dtype=torch.float64)
     results = []
     for new in (True, False):
@@ -332,14 +349,40 @@ def test_replay_of_whole_episodes_equals_the_per_step_replay(name, first_order):
             logits, values, state = loop.replay(selected, prev_policy[:, columns], mask[:, columns] > 0)
         else:
             logits, values, state = per_step_replay(loop, obs, prev_policy, mask, columns)
-        assert state.updates == 2  # the longest episode (9 steps, k = 3) adapts after steps 3 and 6
+        # the longest episode (9 steps, k = 3) adapts after steps 3 and 6, up to the limit
+        assert state.updates == min(2, max_updates)
         objective = ((logits * weights[: len(logits)]).sum(-1) + values) * mask[: len(logits), columns]
-        loop.backward(state, objective.sum())
+        loop.backward(state, objective.nan_to_num().sum())  # NaN padding outputs are masked out
         results.append((logits.detach(), values.detach(), grads_of(model)))
     (logits, values, grads), (ref_logits, ref_values, ref_grads) = results
     assert logits.shape == (9, 4, 6)
-    torch.testing.assert_close(logits, ref_logits, rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(values, ref_values, rtol=1e-9, atol=1e-9)
+    acted = mask[:9, columns] > 0
+    assert torch.isfinite(logits[acted]).all() and torch.isfinite(values[acted]).all()
+    torch.testing.assert_close(logits[acted], ref_logits[acted], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(values[acted], ref_values[acted], rtol=1e-9, atol=1e-9)
     assert grads.keys() == ref_grads.keys() and any(g.abs().sum() > 0 for g in grads.values())
     for n in grads:
+        assert torch.isfinite(grads[n]).all(), n
         torch.testing.assert_close(grads[n], ref_grads[n], rtol=1e-9, atol=1e-9, msg=n)
+
+
+@pytest.mark.parametrize(
+    ("name", "max_updates", "chunks"),
+    [("savn", 3, 3), ("cvmeta", 1, 2), ("cvmeta", 0, 1), ("spatt", 3, 0)],
+)
+def test_replay_multiplies_each_chunk_by_weight_ih_once(name, max_updates, chunks):
+    """Where the encoder does not read h, a chunk (the steps between inner steps; the rest of the
+    episodes after the last) takes one product with ``weight_ih`` and a step one with ``weight_hh``
+    alone; spatt's encoder reads h, so each of its steps takes one product with both."""
+    model, knowledge = make_model(name, max_updates=max_updates)
+    lengths = [9, 2, 6, 1, 4]
+    obs, prev_policy, mask = recorded_segment(knowledge, lengths)
+    loop = InnerLoop(model)
+    logits, _, state = loop.replay(obs, prev_policy, mask > 0)
+    forward = [(len(rows), part) for rows, _, transpose, part in state.lstm.records if not transpose]
+    per_step = [part for _, part in forward if part != "weight_ih"]
+    assert per_step == (["weight_hh"] if chunks else [None]) * len(logits)
+    chunk_rows = [n for n, part in forward if part == "weight_ih"]
+    assert len(chunk_rows) == chunks
+    if chunks:  # every acted step's row once: the chunks' products cover the episodes exactly
+        assert sum(chunk_rows) == sum(lengths)

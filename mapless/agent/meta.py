@@ -60,7 +60,7 @@ from mapless.agent.fast_weights import (
     apply_low_rank,
 )
 from mapless.agent.rollout_lstm import accumulate_grad
-from mapless.models.base import LOW_RANK, ModelOutput, NavModel
+from mapless.models.base import LOW_RANK, FastStep, ModelOutput, NavModel
 from mapless.models.layers import scatter_rows
 
 
@@ -138,9 +138,13 @@ class InnerLoop(FastWeightForward):
         prev_policy: Tensor,
     ) -> ModelOutput:
         """The model's forward pass with each episode's own fast weights."""
-        output, gates, inputs = self.model.fast_step(
-            state.fast, obs, hidden, prev_policy, state.lstm, state.low_rank
+        return self._record(
+            state, self.model.fast_step(state.fast, obs, hidden, prev_policy, state.lstm, state.low_rank)
         )
+
+    def _record(self, state: InnerLoopState, fast_step: FastStep) -> ModelOutput:
+        """Keep the step's gates and LSTM input for the inner steps (and first order's backward)."""
+        output, gates, inputs = fast_step
         step = Step(gates, inputs, state.ids, state.updates)
         if state.updates < self.max_updates:
             state.chunk.append(step)
@@ -186,16 +190,37 @@ class InnerLoop(FastWeightForward):
         from the zero state). ``T'`` is the longest episode. Only the episodes still running are
         stepped: an episode that ended leaves the batch (:meth:`compact`), and its later outputs are
         zeros for the loss to mask out. :meth:`backward` with ``state`` carries a loss of the outputs
-        into ``.grad``."""
+        into ``.grad``.
+
+        Between two inner steps the fast weights are fixed and the previous policies are recorded,
+        so unless the encoder reads the recurrent state (or draws dropout masks, whose order would
+        change: training mode) a chunk's steps are encoded together and multiplied by ``weight_ih``
+        in one product (:class:`_EncodedChunk`); a step then reads only ``weight_hh``, where the
+        per-step product read the whole LSTM weight (the replay's largest cost in profiles). The
+        values and gradients are the per-step ones up to the summation order (tests/test_meta.py)."""
         steps, batch = int(acted.sum(0).max()), acted.shape[1]
         device = prev_policy.device
         state = self.start(batch)
-        hidden = self.model.initial_state(batch, device)
-        rows = torch.arange(batch, device=device)  # the running episodes' columns
+        # in the parameters' dtype: spatt's encoder multiplies h by its weights
+        dtype = state.lstm.cell.weight_hh.dtype
+        hidden = tuple(h.to(dtype) for h in self.model.initial_state(batch, device))
+        rows = torch.arange(batch, device=device)  # the running episodes' columns (= state.ids)
+        ahead = not (self.model.encoder_reads_state or self.model.training)
+        lengths = acted.sum(0)
+        chunk: _EncodedChunk | None = None
         logits, values = [], []
         for t in range(steps):
-            step_obs = {key: value[t].index_select(0, rows) for key, value in obs.items()}
-            out = self.forward(state, step_obs, hidden, prev_policy[t].index_select(0, rows))
+            if ahead:
+                if chunk is None or not chunk.covers(t, state.updates):
+                    chunk = self._encode_chunk(state, obs, prev_policy, lengths, t, steps)
+                x, input_gates, critic_input = chunk.step(t)
+                fast_step = self.model.fast_step_encoded(
+                    state.fast, x, input_gates, critic_input, hidden, state.lstm, state.low_rank
+                )
+                out = self._record(state, fast_step)
+            else:
+                step_obs = {key: value[t].index_select(0, rows) for key, value in obs.items()}
+                out = self.forward(state, step_obs, hidden, prev_policy[t].index_select(0, rows))
             alive = acted[t + 1].index_select(0, rows) if t + 1 < len(acted) else acted.new_zeros(len(rows))
             self.observe(state, out, alive)
             logits.append(out.logits.new_zeros(batch, out.logits.shape[-1]).index_copy(0, rows, out.logits))
@@ -207,6 +232,50 @@ class InnerLoop(FastWeightForward):
                 rows = rows.index_select(0, keep)
                 hidden = tuple(h.index_select(0, keep) for h in hidden)
         return torch.stack(logits), torch.stack(values), state
+
+    def _encode_chunk(
+        self,
+        state: InnerLoopState,
+        obs: dict[str, Tensor],
+        prev_policy: Tensor,
+        lengths: Tensor,
+        start: int,
+        steps: int,
+    ) -> _EncodedChunk:
+        """The encodings of the replay's steps from ``start`` up to the next inner step (the last
+        step when no more come) of the episodes running at ``start`` (``state.ids``, whose fast
+        weights are ``state.fast``), with their ``weight_ih`` products."""
+        k = self.steps
+        end = min(steps, (start // k + 1) * k) if state.updates < self.max_updates else steps
+        span, ids = end - start, state.ids
+        left = (lengths.index_select(0, ids) - start).clamp(max=span)  # steps in the chunk, >= 1
+        offsets = torch.arange(span, device=ids.device)
+        # An episode that ends inside the chunk repeats its last step to fill its row of the
+        # [B, L] grid: encoded (real data, finite gradients) but never read.
+        times = start + torch.minimum(offsets.unsqueeze(0), (left - 1).unsqueeze(1))  # [B, L]
+        columns = ids.unsqueeze(1).expand_as(times)
+        x, critic_input = self.model.encoded_steps(
+            state.fast,
+            {key: value[times, columns] for key, value in obs.items()},
+            prev_policy[times, columns],
+            state.lstm,
+        )
+        # Step start + j runs the episodes with more than j steps left, in ids' order: time-major
+        # rows of the episode-major grid, one slice per step.
+        running = offsets.unsqueeze(1) < left.unsqueeze(0)  # [L, B]
+        step, episode = running.nonzero().unbind(1)
+        order = episode * span + step
+        counts = running.sum(1).tolist()
+        x = x.flatten(0, 1).index_select(0, order)
+        # split, not one slice per step: its backward stacks the steps' gradients in one copy
+        critic = (
+            [None] * span
+            if critic_input is None
+            else critic_input.flatten(0, 1).index_select(0, order).split(counts)
+        )
+        return _EncodedChunk(
+            start, state.updates, x.split(counts), state.lstm.input_gates(x).split(counts), critic
+        )
 
     # -- inner step ----------------------------------------------------------------------------
     def adapt(self, state: InnerLoopState, rows: Tensor, active: Tensor) -> None:
@@ -301,6 +370,25 @@ class InnerLoop(FastWeightForward):
         if inner.requires_grad:
             phi_grads = torch.autograd.grad(-self.inner_lr * inner, phi_params, allow_unused=True)
             accumulate_grad(phi_params, phi_grads)
+
+
+@dataclass
+class _EncodedChunk:
+    """A chunk of replayed steps encoded at once (:meth:`InnerLoop._encode_chunk`): per step, the
+    running episodes' LSTM inputs x, their products with ``weight_ih`` and the critic's extra input."""
+
+    start: int
+    updates: int  # the inner steps taken before it: its fast weights
+    x: tuple[Tensor, ...]
+    input_gates: tuple[Tensor, ...]
+    critic_input: tuple[Tensor, ...] | list[None]
+
+    def covers(self, t: int, updates: int) -> bool:
+        return updates == self.updates and self.start <= t < self.start + len(self.x)
+
+    def step(self, t: int) -> tuple[Tensor, Tensor, Tensor | None]:
+        j = t - self.start
+        return self.x[j], self.input_gates[j], self.critic_input[j]
 
 
 def _low_rank_inner_product(

@@ -11,6 +11,11 @@ matrix product of the stacked step inputs and gate gradients, so :class:`Rollout
 * in :meth:`RolloutLstm.grad` asks autograd for the products' gradients ``Δ_t`` alongside the other
   parameters' and adds ``Δᵀ [x || h]`` to the gradients of ``weight_ih`` and ``weight_hh``.
 
+A product may also take one of the two matrices alone (:meth:`RolloutLstm.input_gates`,
+:meth:`RolloutLstm.hidden_gates`): the inner loop's replay multiplies a whole chunk's inputs by
+``weight_ih`` at once and only ``h`` by ``weight_hh`` step by step; each record then adds to its
+matrix's gradient only.
+
 Second-order meta-gradients stay exact: an inner step taken with ``create_graph=True`` multiplies by
 W again in its backward (``g Wᵀ``); that product is recorded the same way, and its share of W's
 gradient joins the same single product. The values and gradients are those of ``nn.LSTMCell`` up to
@@ -35,15 +40,21 @@ class _DeferredWeightMatmul(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        ctx, rows: Tensor, weight_ih: Tensor, weight_hh: Tensor, transpose: bool, recorder: RolloutLstm
+        ctx,
+        rows: Tensor,
+        weight_ih: Tensor,
+        weight_hh: Tensor,
+        transpose: bool,
+        recorder: RolloutLstm,
+        part: str | None,
     ) -> Tensor:
         # A weak reference: the recorder holds this node's output, and a strong one would close a
         # cycle through the autograd graph that Python's garbage collector cannot see (a leak).
-        ctx.transpose, ctx.recorder = transpose, weakref.ref(recorder)
-        return recorder.multiply(rows, transpose)
+        ctx.transpose, ctx.recorder, ctx.part = transpose, weakref.ref(recorder), part
+        return recorder.multiply(rows, transpose, part)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None, None]:
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None, None, None, None]:
         recorder = ctx.recorder()
         if recorder is None:
             raise RuntimeError("backward through a RolloutLstm that no longer exists (keep it until grad())")
@@ -51,14 +62,14 @@ class _DeferredWeightMatmul(torch.autograd.Function):
         # of second-order meta-learning) it is itself recorded, so the outer backward can defer the
         # weight gradient of this use too; otherwise nothing will differentiate it again.
         if torch.is_grad_enabled():
-            return _deferred_matmul(grad, not ctx.transpose, recorder), None, None, None, None
-        return recorder.multiply(grad, not ctx.transpose), None, None, None, None
+            return _deferred_matmul(grad, not ctx.transpose, recorder, ctx.part), None, None, None, None, None
+        return recorder.multiply(grad, not ctx.transpose, ctx.part), None, None, None, None, None
 
 
-def _deferred_matmul(rows: Tensor, transpose: bool, recorder: RolloutLstm) -> Tensor:
+def _deferred_matmul(rows: Tensor, transpose: bool, recorder: RolloutLstm, part: str | None = None) -> Tensor:
     cell = recorder.cell
-    out = _DeferredWeightMatmul.apply(rows, cell.weight_ih, cell.weight_hh, transpose, recorder)
-    recorder.records.append((rows.detach(), out, transpose))
+    out = _DeferredWeightMatmul.apply(rows, cell.weight_ih, cell.weight_hh, transpose, recorder, part)
+    recorder.records.append((rows.detach(), out, transpose, part))
     return out
 
 
@@ -94,8 +105,9 @@ class RolloutLstm:
         # input-major copy [D + H, 4H].
         self._gate_major = self._copy_of_weight("lstm.operand.gate_major", input_major=False)
         self._input_major = self._copy_of_weight("lstm.operand.input_major", input_major=True)
-        #: every product with the weight: (its left factor, the product, transposed?)
-        self.records: list[tuple[Tensor, Tensor, bool]] = []
+        #: every product with the weight: (its left factor, the product, transposed?, the matrix it
+        #: took: "weight_ih", "weight_hh", or None for both)
+        self.records: list[tuple[Tensor, Tensor, bool, str | None]] = []
         #: the weight gradients the last :meth:`grad` returned (pool buffers, see accumulate_grad)
         self.weight_gradients: tuple[Tensor, ...] = ()
 
@@ -111,11 +123,32 @@ class RolloutLstm:
             return inputs, self.multiply(inputs, transpose=False)
         return inputs, _deferred_matmul(inputs, False, self)
 
-    def multiply(self, rows: Tensor, transpose: bool) -> Tensor:
+    def input_gates(self, x: Tensor) -> Tensor:
+        """``x · weight_ihᵀ`` (recorded like :meth:`gates`): the input's share of the gate
+        pre-activations, for any number of rows at once."""
+        return self._part_product(x, "weight_ih")
+
+    def hidden_gates(self, h: Tensor) -> Tensor:
+        """``h · weight_hhᵀ`` (recorded like :meth:`gates`): the recurrent share, which reads only
+        ``weight_hh``, a ``H / (D + H)`` part of the weights."""
+        return self._part_product(h, "weight_hh")
+
+    def _part_product(self, rows: Tensor, part: str) -> Tensor:
+        if not self.record:
+            return self.multiply(rows, False, part)
+        return _deferred_matmul(rows, False, self, part)
+
+    def multiply(self, rows: Tensor, transpose: bool, part: str | None = None) -> Tensor:
         """``rows · W`` (``rows · Wᵀ`` when ``transpose``) in the rollout's compute dtype, returned in
-        ``rows``' dtype; no graph."""
-        weight = self._input_major if transpose else self._gate_major
+        ``rows``' dtype; no graph. ``part``: one of the two matrices alone (a view of the copy)."""
+        columns = self._input_columns(part)
+        weight = self._input_major[columns] if transpose else self._gate_major[:, columns]
         return _product(rows, weight.T, self.dtype)
+
+    def _input_columns(self, part: str | None) -> slice:
+        """The columns of ``[weight_ih || weight_hh]`` that ``part`` names (None: all)."""
+        split = self.cell.input_size
+        return {None: slice(None), "weight_ih": slice(None, split), "weight_hh": slice(split, None)}[part]
 
     def _copy_of_weight(self, name: str, input_major: bool) -> Tensor:
         """``[weight_ih || weight_hh]`` in the compute dtype, transposed when ``input_major``."""
@@ -145,28 +178,38 @@ class RolloutLstm:
         transposed one ``g Wᵀ`` (an inner step's backward, g in the 4H gate space) contributes
         ``gᵀ ∂L/∂(gWᵀ)``: both are (gate-space)ᵀ (input-space) pairs, summed in one product."""
         records = [r for r in self.records if r[1].requires_grad]  # none is not, unless W is frozen
-        products = [out for _, out, _ in records]
+        products = [r[1] for r in records]
         grads = torch.autograd.grad(loss, [*inputs, *products], retain_graph=retain_graph, allow_unused=True)
         grads, outer = list(grads[: len(inputs)]), grads[len(inputs) :]
-        gate_side, input_side = [], []
-        for (rows, _, transpose), g in zip(records, outer, strict=True):
-            if g is not None:
-                gate_side.append(rows if transpose else g)
-                input_side.append(g if transpose else rows)
-        if not gate_side:
+        # per matrix, its (gate-space, input-space) row pairs: a record of both matrices adds to
+        # each the columns of its input side that belong to it
+        sides: dict[str, tuple[list[Tensor], list[Tensor]]] = {"weight_ih": ([], []), "weight_hh": ([], [])}
+        for (rows, _, transpose, part), g in zip(records, outer, strict=True):
+            if g is None:
+                continue
+            gate, input_side = (rows, g) if transpose else (g, rows)
+            for name in (part,) if part is not None else tuple(sides):
+                sides[name][0].append(gate)
+                sides[name][1].append(
+                    input_side if part is not None else input_side[:, self._input_columns(name)]
+                )
+        if not any(gate_side for gate_side, _ in sides.values()):
             return tuple(grads)
-        gate_columns = self._columns(self._rows("gate_rows", gate_side))  # [4H, N]
-        input_rows = self._rows("input_rows", input_side)  # [N, D + H]
-        split = self.cell.weight_ih.shape[1]
-        parts = []
-        for name, columns in (("weight_ih", slice(None, split)), ("weight_hh", slice(split, None))):
+        # every record took both matrices (the per-step products): their gate rows are stacked once
+        both = all(part is None for _, _, _, part in records)
+        parts, gate_columns = [], None
+        for name, (gate_side, input_side) in sides.items():
             parameter = getattr(self.cell, name)
             positions = [i for i, tensor in enumerate(inputs) if tensor is parameter]
-            if positions:
-                part = self._weight_gradient(name, gate_columns, input_rows[:, columns])
-                parts.append(part)
-                for i in positions:
-                    grads[i] = part if grads[i] is None else grads[i] + part
+            if not positions or not gate_side:
+                continue
+            if gate_columns is None or not both:
+                gate_columns = self._columns(self._rows("gate_rows", gate_side))  # [4H, N]
+            input_rows = self._rows(f"input_rows.{name}", input_side)  # [N, D] or [N, H]
+            part = self._weight_gradient(name, gate_columns, input_rows)
+            parts.append(part)
+            for i in positions:
+                grads[i] = part if grads[i] is None else grads[i] + part
         self.weight_gradients = tuple(parts)
         return tuple(grads)
 

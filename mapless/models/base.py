@@ -61,11 +61,16 @@ class FastStep(NamedTuple):
 
 class WeightProducts(Protocol):
     """The LSTM's weight products of one rollout (:class:`mapless.agent.rollout_lstm.RolloutLstm`):
-    ``gates(x, h)`` is ``([x || h], [x || h] · Wᵀ)`` with ``dtype`` operands, biases not added."""
+    ``gates(x, h)`` is ``([x || h], [x || h] · Wᵀ)`` with ``dtype`` operands, biases not added;
+    ``input_gates(x)`` and ``hidden_gates(h)`` are its two terms ``x · W_ihᵀ`` and ``h · W_hhᵀ``."""
 
     dtype: torch.dtype
 
     def gates(self, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]: ...
+
+    def input_gates(self, x: Tensor) -> Tensor: ...
+
+    def hidden_gates(self, h: Tensor) -> Tensor: ...
 
 
 #: The LSTM matrices (of :class:`RecurrentNavModel`), whose per-episode updates the meta-learning
@@ -305,6 +310,9 @@ class RecurrentNavModel(NavModel, abc.ABC):
     """
 
     parameter_roles = RECURRENT_CORE_ROLES
+    #: :meth:`encode` reads the recurrent state (spatt's memory query): its steps cannot be encoded
+    #: ahead of the recurrence (:meth:`encoded_steps`), only one at a time.
+    encoder_reads_state: ClassVar[bool] = False
 
     def build_recurrent_core(self, lstm_input: int, glorot: bool = True) -> None:
         """The LSTM and the actor/critic heads on h, with SAVN's init: ``glorot`` re-initialises every
@@ -382,14 +390,64 @@ class RecurrentNavModel(NavModel, abc.ABC):
         per-episode ``[B, ...]`` tensors (the names it lacks read the shared parameters; the
         :data:`LOW_RANK` matrices are never in it), and ``low_rank`` maps the step's ``[x || h]`` to
         the episodes' updates of the gates from their LSTM matrices (None before any inner step)."""
-        reduced = None if lstm.dtype == self.lstm.weight_ih.dtype else lstm.dtype
-        x, critic_input = self._encoded(obs, hidden, prev_policy, reduced, fast)
+        x, critic_input = self._encoded(obs, hidden, prev_policy, self._reduced(lstm), fast)
         inputs, product = lstm.gates(x, hidden[0])
+        return self._fast_core(fast, inputs, product, hidden[1], critic_input, low_rank)
+
+    def encoded_steps(
+        self, fast: dict[str, Tensor], obs: dict[str, Tensor], prev_policy: Tensor, lstm: WeightProducts
+    ) -> tuple[Tensor, Tensor | None]:
+        """:meth:`fast_step`'s encoder stage for ``L`` steps of every episode at once: ``obs`` and
+        ``prev_policy`` are ``[B, L, ...]``, ``fast`` per-episode ``[B, ...]`` as in :meth:`fast_step`
+        (fixed over the L steps); returns ``(x [B, L, D], critic input [B, L, ...] or None)``, each
+        row equal to that step's :meth:`fast_step` encoding. Only for encoders that do not read the
+        recurrent state (not :attr:`encoder_reads_state`)."""
+        if self.encoder_reads_state:
+            raise TypeError(
+                f"model {self.config.name!r} encodes from the recurrent state, one step at a time"
+            )
+        batch, steps = prev_policy.shape[:2]
+        hidden = self.initial_state(batch * steps, prev_policy.device)  # unread by these encoders
+        hidden = tuple(t.view(batch, steps, -1) for t in hidden)
+        return self._encoded(obs, hidden, prev_policy, self._reduced(lstm), fast, steps=True)
+
+    def fast_step_encoded(
+        self,
+        fast: dict[str, Tensor],
+        x: Tensor,
+        input_gates: Tensor,
+        critic_input: Tensor | None,
+        hidden: tuple[Tensor, Tensor],
+        lstm: WeightProducts,
+        low_rank: Callable[[Tensor], Tensor] | None = None,
+    ) -> FastStep:
+        """:meth:`fast_step` from its encoding ``x`` (:meth:`encoded_steps`) and ``x``'s share of the
+        gates ``input_gates = lstm.input_gates(x)``, which a caller takes for many steps at once: the
+        step reads only ``weight_hh`` (``lstm.hidden_gates``)."""
+        inputs = torch.cat([x, hidden[0]], dim=-1)
+        product = input_gates + lstm.hidden_gates(hidden[0])
+        return self._fast_core(fast, inputs, product, hidden[1], critic_input, low_rank)
+
+    def _fast_core(
+        self,
+        fast: dict[str, Tensor],
+        inputs: Tensor,
+        product: Tensor,
+        c: Tensor,
+        critic_input: Tensor | None,
+        low_rank: Callable[[Tensor], Tensor] | None,
+    ) -> FastStep:
+        """The step after the weight products ``product = [x || h] · Wᵀ``: biases, low-rank
+        updates, the cell state and the heads."""
         gates = product + self._weight("lstm.bias_ih", fast) + self._weight("lstm.bias_hh", fast)
         if low_rank is not None:
             gates = gates + low_rank(inputs)
-        h, c = lstm_state_from_gates(gates, hidden[1])
+        h, c = lstm_state_from_gates(gates, c)
         return FastStep(self._output(h, c, critic_input, fast), gates, inputs)
+
+    def _reduced(self, lstm: WeightProducts) -> torch.dtype | None:
+        """The encoders' autocast dtype under ``lstm``'s products (None: the parameters' own)."""
+        return None if lstm.dtype == self.lstm.weight_ih.dtype else lstm.dtype
 
     def replay(
         self,
@@ -449,20 +507,30 @@ class RecurrentNavModel(NavModel, abc.ABC):
         prev_policy: Tensor,
         dtype: torch.dtype | None = None,
         fast: dict[str, Tensor] | None = None,
+        steps: bool = False,
     ) -> tuple[Tensor, Tensor | None]:
         """``encode(describe(obs))``: under autocast to a reduced ``dtype`` with the result back in
-        the state's dtype, and per episode under ``vmap`` where ``fast`` holds encoder weights."""
+        the state's dtype, and per episode under ``vmap`` where ``fast`` holds encoder weights.
+        ``steps``: every input has a second dimension of steps (``[B, L, ...]``, one episode's
+        weights for all of them), and so have the results."""
         per_episode = {}
         if fast:
             core = set(self.core_parameter_names())  # run batched, after the encoder
             per_episode = {f"model.{n}": w for n, w in fast.items() if n not in core}
+        if steps and not per_episode:  # the same weights for every row: one batch of B · L rows
+            shape = prev_policy.shape[:2]
+            flat = {key: value.flatten(0, 1) for key, value in obs.items()}
+            x, critic_input = self._encoded(
+                flat, tuple(t.flatten(0, 1) for t in hidden), prev_policy.flatten(0, 1), dtype
+            )
+            return x.unflatten(0, shape), None if critic_input is None else critic_input.unflatten(0, shape)
         if dtype is None and not per_episode:
             return self.encode(self.describe(obs), hidden, prev_policy)
         with _autocast(dtype, prev_policy.device):
             if not per_episode:
                 x, critic_input = self.encode(self.describe(obs), hidden, prev_policy)
             else:
-                x, critic_input = self._encoded_per_episode(per_episode, obs, hidden, prev_policy)
+                x, critic_input = self._encoded_per_episode(per_episode, obs, hidden, prev_policy, steps)
         if dtype is None:
             return x, critic_input
         return _like(x, hidden[0]), _like(critic_input, hidden[0])
@@ -473,21 +541,29 @@ class RecurrentNavModel(NavModel, abc.ABC):
         obs: dict[str, Tensor],
         hidden: tuple[Tensor, Tensor],
         prev_policy: Tensor,
+        steps: bool = False,
     ) -> tuple[Tensor, Tensor | None]:
-        """The encoder with episode b's weights ``weights[·][b]`` on row b, as ``vmap`` over
-        ``functional_call``. Under ``adapt: policy`` :meth:`describe` reads shared weights only: one
-        batched call instead of B under vmap."""
+        """The encoder with episode b's weights ``weights[·][b]`` on row b (on its L rows ``[b, :]``
+        where ``steps``), as ``vmap`` over ``functional_call``. Under ``adapt: policy``
+        :meth:`describe` reads shared weights only: one batched call instead of B under vmap."""
         describe_batched = self.adapts_policy_only
         encoder = _Encoder(self, describe=not describe_batched)
 
         def one_episode(weights, episode_obs, h, c, policy):
+            if steps:  # the episode's rows are a batch already
+                x, extra = functional_call(encoder, weights, (episode_obs, (h, c), policy))
+                return (x,) if extra is None else (x, extra)
             single = {key: value.unsqueeze(0) for key, value in episode_obs.items()}
             x, extra = functional_call(
                 encoder, weights, (single, (h.unsqueeze(0), c.unsqueeze(0)), policy.unsqueeze(0))
             )
             return (x[0],) if extra is None else (x[0], extra[0])
 
-        if describe_batched:
+        if describe_batched and steps:
+            shape = prev_policy.shape[:2]
+            described = self.describe({key: value.flatten(0, 1) for key, value in obs.items()})
+            obs = {key: value.unflatten(0, shape) for key, value in described.items()}
+        elif describe_batched:
             obs = self.describe(obs)
         encoded = vmap(one_episode, randomness="different")(weights, obs, hidden[0], hidden[1], prev_policy)
         return encoded[0], (encoded[1] if len(encoded) > 1 else None)

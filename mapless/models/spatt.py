@@ -36,6 +36,7 @@ class SpattModel(LearnedLossMixin, RecurrentNavModel):
     )
     # The target row enters the query as it is, without a distance.
     settings = RECURRENT | ADAPTIVE | {"dropout": "", "target_context": ""}
+    encoder_reads_state = True  # the memory query and the mixing weights read h_{t-1}
 
     def __init__(self, config: ModelConfig, knowledge: Knowledge | None = None):
         super().__init__(config, knowledge)
