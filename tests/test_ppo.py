@@ -399,7 +399,7 @@ def test_a_frozen_learned_loss_takes_no_step_and_the_inner_steps_still_adapt() -
 
 
 def test_a_frozen_learned_loss_is_refused_outside_ppo() -> None:
-    with pytest.raises(ConfigError, match="frozen learned loss"):
+    with pytest.raises(ConfigError, match=r"meta\.train_learned_loss': algo is a3c, which ignores it"):
         tiny_config("cvmeta", "algo=a3c", "meta.train_learned_loss=false")
 
 

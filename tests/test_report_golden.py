@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from mapless import provenance
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.report import (
     comparison_table,
@@ -141,7 +142,7 @@ def quiet_figures(monkeypatch):
     """No clock in the headers, no figure files and no nested Table 1 report: text and numbers only."""
     import mapless.evaluate.figures as figures
 
-    monkeypatch.setattr(render.time, "strftime", lambda fmt, *a: "2026-01-01 00:00")
+    monkeypatch.setattr(provenance.time, "strftime", lambda fmt, *a: "2026-01-01 00:00")
     monkeypatch.setattr(figures, "exploration_figure", lambda pooled, path: {"fixture": True})
     monkeypatch.setattr(render, "write_report", lambda *a, **k: None)
 

@@ -14,6 +14,7 @@ import torch
 from train_fixtures import fixture_library, tiny_config
 
 from mapless.agent.acting import observation_keys
+from mapless.models.registry import model_class
 from mapless.sim.vector import BatchedNavEnv
 from mapless.train.builders import new_model, reward_config, target_fields, training_sampler
 from mapless.train.gradients import trainable
@@ -29,14 +30,9 @@ CPU = torch.device("cpu")
 
 
 def _setup(name: str, *overrides: str):
-    config = tiny_config(
-        name,
-        "env.max_steps=7",
-        "model.interaction_steps=3",
-        "model.max_inner_updates=2",
-        "model.inner_lr=0.05",
-        *overrides,
-    )
+    # The inner loop's settings for the models that have one: any other model refuses them.
+    inner = ("model.interaction_steps=3", "model.max_inner_updates=2", "model.inner_lr=0.05")
+    config = tiny_config(name, "env.max_steps=7", *(inner if model_class(name).is_adaptive() else ()), *overrides)
     torch.manual_seed(0)
     model = new_model(config)
     library = fixture_library()
