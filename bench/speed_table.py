@@ -1,8 +1,7 @@
 """The speed table: how fast every model trains under the laptop recipe (recurrent PPO) on one
 thread, where its time goes, and how far it is from what this CPU can do.
 
-Part 1, in this process on one thread, models in turns (this machine's speed drifts): for each
-model a PPO trainer of ``train_ppo`` (the small budget's recipe), one warm-up update, then
+Part 1, in this process on one thread, one model after another: for each model a PPO trainer of ``train_ppo`` (the small budget's recipe), one warm-up update, then
 ``--updates`` updates, each split into
 
 * rollout: the collection of the update's segment (the policy acting, no gradient);
@@ -114,20 +113,20 @@ def matmul_roofline(size: int = 2048, repeats: int = 5) -> float:
 
 
 def speed_rows(models: list[str], updates: int) -> tuple[list[dict], float]:
+    """One model at a time (a trainer holds its environments and its peak memory; nine at once do
+    not fit 24 GB), each after a warm-up update."""
+    import gc
+
     torch.set_num_threads(1)
     roofline = matmul_roofline()
-    trainers = {m: build(m) for m in models}
-    for trainer in trainers.values():
-        one_update(trainer)  # warm-up: allocations, kernels, the memo's first rows
-    splits: dict[str, list[dict]] = {m: [] for m in models}
-    for _ in range(updates):
-        for m, trainer in trainers.items():  # models take turns
-            splits[m].append(one_update(trainer))
     rows = []
     for m in models:
-        total = {k: sum(s[k] for s in splits[m]) for k in ("rollout", "update", "replay", "frames")}
+        trainer = build(m)
+        one_update(trainer)  # warm-up: allocations, kernels, the memo's first rows
+        splits = [one_update(trainer) for _ in range(updates)]
+        total = {k: sum(s[k] for s in splits) for k in ("rollout", "update", "replay", "frames")}
         seconds = total["rollout"] + total["update"]
-        flops = flops_per_frame(trainers[m])
+        flops = flops_per_frame(trainer)
         fps = total["frames"] / seconds
         rows.append(
             {
@@ -141,6 +140,8 @@ def speed_rows(models: list[str], updates: int) -> tuple[list[dict], float]:
                 "roofline_share": flops * fps / 1e9 / roofline,
             }
         )
+        del trainer
+        gc.collect()
     return rows, roofline
 
 
