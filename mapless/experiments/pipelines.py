@@ -36,6 +36,8 @@ from mapless.experiments.records import (
     TrajectoryFigure,
 )
 from mapless.experiments.render import write_report
+from mapless.models import MODELS
+from mapless.models.settings import reads
 from mapless.scenes.catalogue import ROOM_TYPES
 
 
@@ -185,9 +187,15 @@ def table3_rows(config: ExperimentConfig) -> dict[str | None, Row]:
     """The focus model (key None), then without the relationships of one room type (key: the room)."""
     # The unablated model is Table 1's run (variant "all", same configuration): trained once.
     rows: dict[str | None, Row] = {None: Row(config.focus)}
+    # The relationships live in the hierarchical graph of a model that has one, and in the parent
+    # reward of every model: a model without the graph is not given a graph setting it never reads.
+    model = train_config(config, config.focus, 1).model
+    in_graph = reads(MODELS[model.name], model, "hierarchy_rooms")
     for room in config.rooms:
         kept = [r for r in ROOM_TYPES if r != room]
-        extra = {"model": {"hierarchy_rooms": kept}, "env": {"reward": {"parent_reward_rooms": kept}}}
+        extra = {"env": {"reward": {"parent_reward_rooms": kept}}}
+        if in_graph:
+            extra["model"] = {"hierarchy_rooms": kept}
         rows[room] = Row(config.focus, f"no-{room}", extra)
     return rows
 
