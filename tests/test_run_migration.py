@@ -27,6 +27,7 @@ from mapless.experiments.runs import run_dir_for
 DATA = Path(__file__).parent / "data"
 
 
+@pytest.mark.slow  # resolves every shipped experiment twice over: 12 s of the fast tier
 def test_the_migrations_copy_of_the_former_rule_names_every_shipped_run_as_it_did() -> None:
     # run_folders_old_hash.json is run_folders.json as the former rule wrote it (git show of the
     # commit before the change): the copy in migrate.py must give those names, or it would

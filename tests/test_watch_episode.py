@@ -87,6 +87,7 @@ def test_eval_render_draws_the_first_n_episodes_of_the_oracle(tmp_path, episode_
         assert _gif_frames(out / "render" / f"{stem}.gif") == result["length"] + 1 > 1
 
 
+@pytest.mark.slow  # trains a run first
 def test_eval_render_draws_a_trained_runs_episode(tmp_path, episode_file) -> None:
     run = tmp_path / "run"
     model = {"name": "a3c", "hidden_size": 16, "dropout": 0.0}
