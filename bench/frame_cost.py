@@ -75,7 +75,7 @@ def time_acting(trainer) -> tuple[float, object]:
 
 
 def time_update(trainer, segment) -> float:
-    from mapless.train.ppo_loss import gae
+    from mapless.train.ppo import gae
 
     ppo = trainer.config.ppo
     adv, ret = gae(segment.rewards, segment.values, segment.next_value, segment.terminated,
@@ -114,7 +114,7 @@ def replay_profile(trainer, segment, rows: int = 12) -> str:
     where an adaptive model's update goes, which the labelled split cannot show."""
     from torch.profiler import ProfilerActivity, profile
 
-    from mapless.train.ppo_loss import gae
+    from mapless.train.ppo import gae
 
     ppo = trainer.config.ppo
     adv, ret = gae(segment.rewards, segment.values, segment.next_value, segment.terminated,

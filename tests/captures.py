@@ -58,7 +58,9 @@ def run_folders(names: list[str]) -> dict[str, str]:
                     model = config.focus if name not in MODELS else name
                     cfg = train_config(config, model, 1, extra)
                     variant = "all" if name in MODELS else f"ablation-{name}"
-                    folders[f"{experiment} {budget} {protocol} {name}"] = run_dir_for(config, cfg, variant).name
+                    folders[f"{experiment} {budget} {protocol} {name}"] = run_dir_for(
+                        config, cfg, variant
+                    ).name
     return folders
 
 

@@ -71,14 +71,22 @@ def test_every_argument_has_help_and_shows_its_default() -> None:
             name = f"mapless {' '.join(path)} {'/'.join(action.option_strings) or action.dest}"
             assert action.help, f"{name} has no help"
             checked += 1
-            if action.required or isinstance(action, UNSHOWN) or (not action.option_strings and action.nargs is None):
+            if (
+                action.required
+                or isinstance(action, UNSHOWN)
+                or (not action.option_strings and action.nargs is None)
+            ):
                 continue  # required, a flag, repeatable, or a positional that must be given
             if action.default is None:
                 # No value unless given: the help says what happens then.
-                assert "default" in action.help or "required with" in action.help, f"{name}: what if not given?"
+                assert "default" in action.help or "required with" in action.help, (
+                    f"{name}: what if not given?"
+                )
             else:
                 shown = formatter._get_help_string(action)
-                assert "%(default)" in shown or "(default" in shown, f"{name}: default {action.default!r} unshown"
+                assert "%(default)" in shown or "(default" in shown, (
+                    f"{name}: default {action.default!r} unshown"
+                )
     assert checked > 120
 
 
@@ -104,14 +112,20 @@ def test_one_spelling_of_the_success_rule_and_of_the_cache_folder() -> None:
     commands = dict(_commands(build_parser()))
     # Every command that sets the simulator's success rule does so with --sim, nothing else.
     rule_setters = [path for path, parser in commands.items() if "--sim" in _options(parser)]
-    assert ("train",) in rule_setters and ("thor", "scrape") in rule_setters and ("scenes", "build") in rule_setters
+    assert (
+        ("train",) in rule_setters
+        and ("thor", "scrape") in rule_setters
+        and ("scenes", "build") in rule_setters
+    )
     assert not [p for p, parser in commands.items() if "--visibility-distance" in _options(parser)]
     # Every command that reads the scene cache takes --cache-dir, evaluation and training included.
     for path in [*rule_setters, ("eval",), ("reproduce",)]:
         if path != ("thor", "scrape"):  # scrapes a live AI2-THOR; reads no cache
             assert "--cache-dir" in _options(commands[path]), path
     # One spelling of the evaluation split(s): --split, on eval and on episodes make.
-    assert "--split" in _options(commands[("eval",)]) and "--split" in _options(commands[("episodes", "make")])
+    assert "--split" in _options(commands[("eval",)]) and "--split" in _options(
+        commands[("episodes", "make")]
+    )
     assert not [p for p, parser in commands.items() if "--splits" in _options(parser)]
 
 
@@ -129,9 +143,22 @@ def test_train_reads_sim_and_cache_dir_as_its_config_keys(tmp_path) -> None:
     from mapless.cli.train import config_overrides
 
     args = build_parser().parse_args(
-        ["train", "x.yaml", "--sim", "visibility_distance=1.5", "--cache-dir", str(tmp_path), "--set", "seed=3"]
+        [
+            "train",
+            "x.yaml",
+            "--sim",
+            "visibility_distance=1.5",
+            "--cache-dir",
+            str(tmp_path),
+            "--set",
+            "seed=3",
+        ]
     )
-    assert config_overrides(args) == ["seed=3", "env.sim.visibility_distance=1.5", f"env.cache_dir={tmp_path}"]
+    assert config_overrides(args) == [
+        "seed=3",
+        "env.sim.visibility_distance=1.5",
+        f"env.cache_dir={tmp_path}",
+    ]
 
 
 def test_a_reader_that_leaves_early_ends_the_command_quietly() -> None:

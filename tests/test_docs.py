@@ -280,7 +280,6 @@ def test_the_code_map_matches_the_source() -> None:
     package = REPO / "mapless"
     assert {
         package / "train" / "ppo.py",
-        package / "train" / "ppo_loss.py",
         package / "models" / "base.py",
     } <= a3c
     # The inner loop and φ are the adaptive models' (an update that took no inner step would miss φ).

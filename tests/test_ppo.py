@@ -14,8 +14,7 @@ from train_fixtures import fixture_library, tiny_config
 from mapless import checkpoint as ckpt
 from mapless.config import ConfigError
 from mapless.models import build_model
-from mapless.train.ppo import PPOTrainer
-from mapless.train.ppo_loss import gae, ppo_loss
+from mapless.train.ppo import PPOTrainer, gae, ppo_loss
 from mapless.train.run import resume_config, train
 
 

@@ -32,7 +32,9 @@ CPU = torch.device("cpu")
 def _setup(name: str, *overrides: str):
     # The inner loop's settings for the models that have one: any other model refuses them.
     inner = ("model.interaction_steps=3", "model.max_inner_updates=2", "model.inner_lr=0.05")
-    config = tiny_config(name, "env.max_steps=7", *(inner if model_class(name).is_adaptive() else ()), *overrides)
+    config = tiny_config(
+        name, "env.max_steps=7", *(inner if model_class(name).is_adaptive() else ()), *overrides
+    )
     torch.manual_seed(0)
     model = new_model(config)
     library = fixture_library()

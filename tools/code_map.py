@@ -165,6 +165,27 @@ def _thousands(n: int) -> str:
     return f"{n:,}"
 
 
+#: What a reader following an update does not open: the environment's side (the simulator and what
+#: it reads) and the files whose names say what they do.
+READER_SKIPS_UNITS = ("sim/", "episodes/", "knowledge/", "scenes/")
+READER_SKIPS_FILES = (
+    "models/dropout.py",
+    "models/memo.py",
+    "models/roles.py",
+    "train/distributed.py",
+    "train/gradients.py",
+    "train/loop.py",
+    "evaluate/metrics.py",
+)
+
+
+def is_read_by_a_reader(path: Path) -> bool:
+    """Whether a reader following one update opens ``path``: the policy's base class, its encoder
+    file, the learned loss φ and the LSTM cell do; the environment and the primitives do not."""
+    name = path.relative_to(PACKAGE).as_posix()
+    return not name.startswith(READER_SKIPS_UNITS) and name not in READER_SKIPS_FILES
+
+
 def render() -> str:
     """The generated block, markers included."""
     out = [BEGIN, "", "## Module map", ""]
@@ -213,6 +234,7 @@ def render() -> str:
     for label, keep in (
         ("all", lambda p: True),
         ("without the environment", lambda p: unit_of(p) not in environment),
+        ("a reader's files (tools/update_files.py)", is_read_by_a_reader),
     ):
         cells = []
         for model in TRACED_MODELS:

@@ -3,8 +3,8 @@
 :func:`tools.code_map.trace_update` traces one ``PPOTrainer.update()`` of a model on the tests' tiny
 fixtures (collection, GAE, the minibatches' replay, loss and backward, the optimizer steps) and
 gives every ``mapless/`` file whose functions ran. :func:`files_of_one_update` keeps the ones a
-reader following the update opens: it leaves out the environment (:data:`ENVIRONMENT`) and the
-primitives whose names say what they do (:data:`PRIMITIVES`); the policy's base class, its encoder
+reader following the update opens (:func:`tools.code_map.is_read_by_a_reader`): it leaves out the
+environment and the primitives whose names say what they do; the policy's base class, its encoder
 file, the learned loss φ and the LSTM cell (``models/layers.py``) count.
 
     python tools/update_files.py [MODEL ...]      # default: cvmeta a3c
@@ -17,18 +17,6 @@ import sys
 from pathlib import Path
 
 TOOLS = Path(__file__).resolve().parent
-#: The environment's side of an update: the simulator and what it reads.
-ENVIRONMENT = ("sim/", "episodes/", "knowledge/", "scenes/")
-#: Files on the update's path whose names say what they do.
-PRIMITIVES = (
-    "models/dropout.py",
-    "models/memo.py",
-    "models/roles.py",
-    "train/distributed.py",
-    "train/gradients.py",
-    "train/loop.py",
-    "evaluate/metrics.py",
-)
 
 
 def _code_map():
@@ -47,9 +35,8 @@ def files_of_one_update(model: str = "cvmeta") -> list[tuple[str, int]]:
     code_map = _code_map()
     rows = []
     for path in code_map.trace_update(model):
-        name = path.relative_to(code_map.PACKAGE).as_posix()
-        if not name.startswith(ENVIRONMENT) and name not in PRIMITIVES:
-            rows.append((name, code_map.line_count(path)))
+        if code_map.is_read_by_a_reader(path):
+            rows.append((path.relative_to(code_map.PACKAGE).as_posix(), code_map.line_count(path)))
     return rows
 
 
