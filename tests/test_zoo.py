@@ -156,7 +156,122 @@ def test_the_package_zoo_is_present_and_within_its_size(monkeypatch):
     assert root.is_dir() and (root / "README.md").is_file()
     assert zoo.folder_size() <= zoo.MAX_BYTES
     for entry in zoo.entries():  # every shipped entry is complete and consistent with its manifest
-        assert entry.model_file.is_file() and entry.results()
+        assert (not entry.has_weights or entry.model_file.is_file()) and entry.results()
+    assert {e.name for e in zoo.entries() if not e.has_weights} >= {
+        f"zoo:table1-small-seeds/{model}" for model in ("random", "a3c", "mjolnir_o", "cvmeta", "mlp")
+    }
+
+
+def _signed(value: float) -> str:
+    return f"{'−' if value < 0 else '+'}{abs(value):.1f}"
+
+
+def test_the_readme_difference_row_is_what_the_shipped_results_give(monkeypatch):
+    monkeypatch.delenv(zoo.ROOT_VARIABLE, raising=False)
+    a, b = (zoo.entry(f"zoo:table1-small-seeds/{m}").results() for m in ("a3c", "cvmeta"))
+    assert len(a) == len(b) == 3
+    d = difference_estimates(a, b, ["success", "spl"])
+    sr, spl = (d[k] for k in ("success", "spl"))
+    row = (
+        f"cvmeta − a3c = {_signed(100 * sr.mean)} SR [{_signed(100 * sr.ci_low)}, {_signed(100 * sr.ci_high)}] "
+        f"and {_signed(100 * spl.mean)} SPL\n[{_signed(100 * spl.ci_low)}, {_signed(100 * spl.ci_high)}]"
+    )
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert row in readme
+
+
+def _report(config: dict, episodes: list[Episode], seeds: dict[str, int], commit: str = "c0ffee") -> dict:
+    """An experiment report as reproduce writes it, with crafted results on ``episodes``: episode i
+    of seed s succeeds when i + s is even."""
+
+    def results(seed: int) -> list[dict]:
+        return [
+            EpisodeResult(i, e.episode_id, e.scene, "kitchen", e.target, (i + seed) % 2 == 0, 5,
+                          max(e.optimal_length, 1), True, 0, 0.0, 0).to_dict()
+            for i, e in enumerate(episodes)
+        ]  # fmt: skip
+
+    models = []
+    for model, count in seeds.items():
+        runs = [
+            {"run_dir": f"runs/{model}__all__s{s}__0000000{s}",
+             "selection": {"chosen": f"runs/x/model_{s}.pt", "candidates": [
+                 {"path": f"runs/x/model_{s}.pt", "frames": 100 * s}]}}
+            for s in range(1, count + 1)
+        ]  # fmt: skip
+        models.append({"model": model, "runs": runs, "episodes": [results(s) for s in range(1, count + 1)]})
+    return {"experiment": "table1", "config": config, "models": models, "provenance": {"commit": commit}}
+
+
+def test_a_report_s_rows_become_results_only_entries_with_every_seed(tmp_path, monkeypatch, capsys):
+    from mapless.config import to_dict
+    from mapless.experiments.config import load_experiment
+    from mapless.experiments.evaluator import Evaluator
+
+    monkeypatch.setenv(zoo.ROOT_VARIABLE, str(tmp_path / "zoo"))
+    config = load_experiment("table1", "smoke", overrides=["eval.per_room=2", "eval.select_per_room=2"])
+    episodes = Evaluator(config, log=lambda line: None).report_episodes
+    assert len(episodes) == 8  # two per room type, the standard protocol's test set: no scenes needed
+    report = _report(to_dict(config), episodes, {"a3c": 2, "cvmeta": 2})
+    path = tmp_path / "table1.json"
+    path.write_text(json.dumps(report))
+    assert main(["zoo", "add-results", str(path), "--experiment", "rows-smoke"]) == 0
+    assert "zoo:rows-smoke/a3c: results only, 2 seed(s), SR 50.0 %" in capsys.readouterr().out
+    entry = zoo.entry("zoo:rows-smoke/a3c")
+    assert not entry.has_weights and sorted(p.name for p in entry.folder.iterdir()) == [
+        "manifest.json", "results.json.gz"]  # fmt: skip
+    assert entry.episodes() == episodes
+    stored = entry.results()
+    assert [[r.to_dict() for r in seed] for seed in stored] == report["models"][0]["episodes"]
+    manifest = entry.manifest
+    assert manifest["seeds"] == 2 and manifest["report_commit"] == "c0ffee"
+    assert manifest["runs"] == [
+        {"run": "a3c__all__s1__00000001", "snapshot": "model_1.pt", "frames": 100},
+        {"run": "a3c__all__s2__00000002", "snapshot": "model_2.pt", "frames": 200},
+    ]
+    assert (manifest["protocol"], manifest["budget"], manifest["episodes"]["count"]) == (
+        "standard",
+        "smoke",
+        8,
+    )
+    # Seed 1 succeeds on odd episodes, seed 2 on even ones: SR 0.5 in each, over the seeds too.
+    assert manifest["success"]["mean"] == 0.5 and manifest["success"]["seeds"] == 2
+    # No weights: eval names the entries that have some; compare reads the rows.
+    assert main(["eval", "zoo:rows-smoke/a3c"]) == 2
+    assert "ships per-episode results only" in capsys.readouterr().err
+    assert main(["compare", "zoo:rows-smoke/a3c", "zoo:rows-smoke/cvmeta"]) == 0
+    d = difference_estimates(stored, zoo.entry("zoo:rows-smoke/cvmeta").results(), ["success"])["success"]
+    assert d.mean == 0.0
+    assert _row(capsys.readouterr().out, "SR")[3].startswith("+0.0 [")
+
+
+def test_a_report_row_off_its_episodes_or_over_weights_is_refused(tmp_path, monkeypatch, capsys):
+    from mapless.config import to_dict
+    from mapless.experiments.config import load_experiment
+    from mapless.experiments.evaluator import Evaluator
+
+    monkeypatch.setenv(zoo.ROOT_VARIABLE, str(tmp_path / "zoo"))
+    config = load_experiment("table1", "smoke", overrides=["eval.per_room=1", "eval.select_per_room=1"])
+    episodes = Evaluator(config, log=lambda line: None).report_episodes
+    report = _report(to_dict(config), episodes, {"a3c": 1})
+    report["models"][0]["episodes"][0][2]["episode_id"] = "elsewhere"
+    path = tmp_path / "table1.json"
+    path.write_text(json.dumps(report))
+    assert main(["zoo", "add-results", str(path), "--experiment", "rows"]) == 2
+    assert "results not on the entry's episodes (episode 2 is" in capsys.readouterr().err
+    assert not (tmp_path / "zoo").exists()
+    # A row of a name whose entry ships weights is refused: the weights stay.
+    path.write_text(json.dumps(_report(to_dict(config), episodes, {"a3c": 1})))
+    weights = tmp_path / "zoo" / "rows" / "a3c" / zoo.MODEL_FILE
+    weights.parent.mkdir(parents=True)
+    weights.write_bytes(b"weights")
+    assert main(["zoo", "add-results", str(path), "--experiment", "rows"]) == 2
+    assert "ships weights" in capsys.readouterr().err and weights.read_bytes() == b"weights"
+    assert main(["zoo", "add-results", str(path), "--experiment", "rows", "--models", "savn"]) == 2
+    assert "has no model savn (it has a3c)" in capsys.readouterr().err
+    path.write_text(json.dumps({"models": []}))
+    assert main(["zoo", "add-results", str(path), "--experiment", "rows"]) == 2
+    assert "is not an experiment report" in capsys.readouterr().err
 
 
 def test_eval_of_a_shipped_agent_gives_its_half_precision_results(added, fixture_scenes, tmp_path, capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -25,7 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the commit that trained it and the one that added it. The zoo is the package's data/zoo "
         "folder, or $MAPLESS_ZOO.",
     )
-    sub = parser.add_subparsers(dest="zoo_command", metavar="{list,add}", help="list (the default) or add")
+    sub = parser.add_subparsers(
+        dest="zoo_command", metavar="{list,add,add-results}", help="list (the default), add or add-results"
+    )
     add_command(sub, "list", list_entries, help="the entries (the default)")
     add = add_command(
         sub,
@@ -70,6 +73,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--seed", type=seed_int, default=0, help="action-sampling seed, unless --results records one"
     )
     add_cache_argument(add)
+    rows = add_command(
+        sub,
+        "add-results",
+        add_results,
+        help="add an experiment report's rows as results-only entries: every seed's per-episode results",
+        description="Each model of the report (or of --models) becomes zoo:EXPERIMENT/MODEL with the "
+        "per-episode results of all its seeds on the report's episodes, rebuilt from the report's "
+        "config and checked against the results, and no weights: `mapless compare` pairs a new run "
+        "or result file with it without training the row again.",
+    )
+    rows.add_argument("report", type=Path, metavar="REPORT_JSON", help="an experiment report (table1.json)")
+    rows.add_argument(
+        "--experiment", required=True, help="the entries' experiment, e.g. table1-medium-reference"
+    )
+    rows.add_argument(
+        "--models", help="comma-separated models of the report to add (default: every model it holds)"
+    )
+    add_cache_argument(rows)
 
 
 def list_entries(args: argparse.Namespace) -> int:
@@ -186,12 +207,94 @@ def add_entry(args: argparse.Namespace) -> int:
         "half_precision": check,
     }
     name = (args.model or cfg.model.name).replace(":", ".")
-    entry = write_entry(args.experiment, name, half, full, episodes, manifest)
+    entry = write_entry(args.experiment, name, half, [full], episodes, manifest)
     print(
         f"added {entry.name}: SR {100 * check['float32_sr']:.1f} % (float32), "
         f"{100 * check['float16_sr']:.1f} % (float16), in {entry.folder}"
     )
     return 0
+
+
+def add_results(args: argparse.Namespace) -> int:
+    """An experiment report's rows as results-only zoo entries (:func:`report_rows`)."""
+    from mapless.evaluate.report import read_json
+    from mapless.evaluate.zoo import write_entry
+
+    try:
+        report = read_json(args.report)
+    except (OSError, ValueError) as error:
+        raise MaplessError(f"cannot read the report {args.report}: {error}") from None
+    if not isinstance(report, dict) or not isinstance(report.get("models"), list) or "config" not in report:
+        raise MaplessError(
+            f"{args.report} is not an experiment report (a JSON object with 'config' and 'models')"
+        )
+    if args.cache_dir is not None:  # where the report's episodes are rebuilt from, as reproduce reads it
+        os.environ["MAPLESS_CACHE"] = str(args.cache_dir)
+    wanted = args.models.split(",") if args.models else None
+    for model, (results, episodes, manifest) in report_rows(report, args.report.name, wanted).items():
+        entry = write_entry(args.experiment, model.replace(":", "."), None, results, episodes, manifest)
+        sr = entry.manifest["success"]["mean"]
+        print(f"added {entry.name}: results only, {len(results)} seed(s), SR {100 * sr:.1f} %")
+    return 0
+
+
+def report_rows(report: dict, source: str, models: list[str] | None) -> dict:
+    """``{model: (per-seed results, episodes, manifest)}`` of an experiment report's rows. The
+    episodes are rebuilt from the report's config as the experiment chose them, and each seed's
+    results must be on them, episode by episode."""
+    from mapless.config import from_dict
+    from mapless.episodes.protocols import get_protocol
+    from mapless.evaluate.metrics import EpisodeResult
+    from mapless.experiments.config import ExperimentConfig
+    from mapless.experiments.evaluator import Evaluator, experiment_scenes
+    from mapless.provenance import provenance, run_provenance
+
+    config = from_dict(ExperimentConfig, report["config"])
+    episodes = Evaluator(config, log=lambda line: None).report_episodes
+    records = {r.get("model"): r for r in report["models"]}
+    unknown = sorted(set(models or []) - set(records))
+    if unknown:
+        raise MaplessError(
+            f"{source} has no model {', '.join(unknown)} (it has {', '.join(map(str, records))})"
+        )
+    rows = {}
+    for model in models or list(records):
+        record = records[model]
+        results = [[EpisodeResult.from_dict(d) for d in seed] for seed in record.get("episodes", [])]
+        runs = [r for r in record.get("runs", []) if r.get("run_dir")]
+        trained = [run_provenance(Path(r["run_dir"]) / "config.yaml") for r in runs]
+        manifest = {
+            "budget": config.budget,
+            "protocol": config.eval.protocol,
+            "episodes": {
+                "split": get_protocol(config.eval.protocol).report_split,
+                "file": config.eval.report_file,
+                "per_room": config.eval.per_room,
+                "target_set": experiment_scenes(config)[1],
+            },
+            "seeds": len(results),
+            "source": f"{source}:{model}",
+            "report_commit": report.get("provenance", {}).get("commit"),
+            "training_commit": next((t[0]["commit"] for t in trained if t), None),
+            "training_commits": sorted({row.get("commit") for t in trained for row in t} - {None}),
+            "added_commit": provenance()["commit"],
+            "runs": [_chosen(r) for r in runs],
+            "eval_settings": {"seed": config.eval.seed, "greedy": config.eval.greedy, "bf16": False},
+        }
+        rows[model] = (results, episodes, manifest)
+    return rows
+
+
+def _chosen(run: dict) -> dict:
+    """A report's run record, shortened to its folder's name and the snapshot its selection chose."""
+    selection = run.get("selection", {})
+    chosen = selection.get("chosen")
+    frames = next((c.get("frames") for c in selection.get("candidates", []) if c.get("path") == chosen), None)
+    return {
+        "run": Path(run["run_dir"]).name,
+        "snapshot": Path(chosen).name if chosen else None,
+        "frames": frames,
+    }
 
 
 def run_library(cfg, protocol_name: str, cache_dir: Path | None = None):

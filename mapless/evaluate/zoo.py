@@ -1,7 +1,9 @@
 """Shipped agents and their results (the zoo): ``<root>/<experiment>/<model>/`` holds a chosen
 agent's weights at half precision (``model.pt``, a model file :func:`mapless.checkpoint.load_model`
 reads back into float32), its per-episode results with the episodes they were played on
-(``results.json.gz``) and a manifest of where they come from (``manifest.json``).
+(``results.json.gz``) and a manifest of where they come from (``manifest.json``). A results-only
+entry (a row of an experiment report, every seed of it; :func:`report_entries`) has no ``model.pt``:
+``mapless compare`` reads it, ``mapless eval`` cannot run it.
 
 The root is the package's ``data/zoo`` folder, or ``$MAPLESS_ZOO`` (tests, a maintainer's working
 copy). Entries are named ``zoo:<experiment>/<model>`` wherever a command accepts a model or results.
@@ -66,7 +68,18 @@ class ZooEntry:
         return f"{PREFIX}{self.experiment}/{self.model}"
 
     @property
+    def has_weights(self) -> bool:
+        return (self.folder / MODEL_FILE).is_file()
+
+    @property
     def model_file(self) -> Path:
+        """The shipped weights; an error for a results-only entry."""
+        if not self.has_weights:
+            raise ZooError(
+                f"{self.name} ships per-episode results only, no weights: compare with it "
+                f"(mapless compare RUN {self.name}); the entries with weights: "
+                f"{', '.join(e.name for e in entries(self.folder.parent.parent) if e.has_weights) or 'none'}"
+            )
         return self.folder / MODEL_FILE
 
     @property
@@ -115,19 +128,24 @@ def entry(spec: str, root: str | Path | None = None) -> ZooEntry:
 
 
 def listing(root: str | Path | None = None) -> str:
-    """A markdown table of the entries: SR and SPL with their intervals, episodes, the commits that
-    trained and added them; or a line saying there are none."""
+    """A markdown table of the entries: SR and SPL with their intervals (over episodes and seeds),
+    episodes, seeds, whether weights ship, the commits that trained and added them; or a line saying
+    there are none."""
     rows = []
     for e in entries(root):
         m = e.manifest
         sr, spl = m.get("success", {}), m.get("spl", {})
         rows.append(
             f"| {e.name} | {_pct(sr)} | {_pct(spl)} | {m.get('episodes', {}).get('count', '?')} "
+            f"| {sr.get('seeds', '?')} | {'yes' if e.has_weights else 'results only'} "
             f"| {_short(m.get('training_commit'))} | {_short(m.get('added_commit'))} |"
         )
     if not rows:
         return f"no entries in the zoo ({zoo_root(root)})"
-    head = "| entry | SR | SPL | episodes | trained at | added at |\n|---|---|---|---|---|---|"
+    head = (
+        "| entry | SR | SPL | episodes | seeds | weights | trained at | added at |\n"
+        "|---|---|---|---|---|---|---|---|"
+    )
     return "\n".join([head, *rows])
 
 
@@ -173,24 +191,38 @@ def half_precision_check(full: Sequence[EpisodeResult], half: Sequence[EpisodeRe
 def write_entry(
     experiment: str,
     model: str,
-    payload: dict,
-    results: Sequence[EpisodeResult],
+    payload: dict | None,
+    results: Sequence[Sequence[EpisodeResult]],
     episodes: Sequence[Episode],
     manifest: dict,
     root: str | Path | None = None,
 ) -> ZooEntry:
-    """Write an entry: the model file ``payload`` (weights already at half precision), the results with
-    their episodes (compact JSON, gzip without a timestamp, so the bytes depend on the content only)
-    and the manifest, which gains the episode digest and SR/SPL with their intervals."""
+    """Write an entry: the model file ``payload`` (weights already at half precision; None: a
+    results-only entry), each seed's results with their episodes (compact JSON, gzip without a
+    timestamp, so the bytes depend on the content only) and the manifest, which gains the episode
+    digest and SR/SPL with their intervals."""
     if "/" in experiment or "/" in model or not experiment or not model:
         raise ZooError(f"an entry is named <experiment>/<model>; got {experiment!r} and {model!r}")
+    keys = set_keys(episodes)
+    for seed in results:
+        if (mismatch := key_mismatch(result_keys(seed), keys)) is not None:
+            raise ZooError(f"{experiment}/{model}: results not on the entry's episodes ({mismatch})")
     folder = zoo_root(root) / experiment / model
+    if payload is None and (folder / MODEL_FILE).is_file():
+        raise ZooError(
+            f"{PREFIX}{experiment}/{model} ships weights, which a results-only entry of that name would "
+            "drop; name the results another experiment (e.g. <experiment>-seeds); nothing was added"
+        )
     folder.mkdir(parents=True, exist_ok=True)
-    atomic_save(payload, folder / MODEL_FILE)
-    stored = {"episodes": [[r.to_dict() for r in results]], "episode_set": [e.to_dict() for e in episodes]}
+    if payload is not None:
+        atomic_save(payload, folder / MODEL_FILE)
+    stored = {
+        "episodes": [[r.to_dict() for r in seed] for seed in results],
+        "episode_set": [e.to_dict() for e in episodes],
+    }
     text = json.dumps(stored, separators=(",", ":")).encode()
     write_bytes(folder / RESULTS_FILE, gzip.compress(text, compresslevel=9, mtime=0))
-    estimates = {k: v.to_dict() for k, v in seed_estimates([results]).items() if k in ("success", "spl")}
+    estimates = {k: v.to_dict() for k, v in seed_estimates(results).items() if k in ("success", "spl")}
     manifest = {
         **manifest,
         "experiment": experiment,
