@@ -27,9 +27,13 @@ CODE_SUFFIXES = {".py", ".sh"}
 
 
 def reader_files(root: Path = REPO) -> list[Path]:
-    """The README, every page under docs/, every experiment config, every text file of the package
-    data, and the code of the package, bench/ and tools/, under ``root``."""
-    files = [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
+    """The README, every page under docs/ and tests/, every experiment config, every text file of the
+    package data, and the code of the package, bench/ and tools/, under ``root``."""
+    files = [
+        root / "README.md",
+        *sorted((root / "docs").rglob("*.md")),
+        *sorted((root / "tests").rglob("*.md")),
+    ]
     for folder in (root / "experiments", root / "mapless" / "configs", root / "mapless" / "data"):
         files += sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix in TEXT_SUFFIXES)
     for folder in (root / "mapless", root / "bench", root / "tools"):
