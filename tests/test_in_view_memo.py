@@ -58,7 +58,7 @@ def test_memo_computes_a_constant_once_and_keeps_it_when_the_rows_start_afresh()
     assert memo.constant("other", lambda: torch.zeros(1)).shape == (1,) and memo.computed_constants == 2
 
 
-@pytest.mark.parametrize("name", ["cvmeta", "mjolnir_o", "sp"])
+@pytest.mark.parametrize("name", ["cvmeta", "mjolnir_o", "sp", "gve"])
 def test_memoized_rollout_has_the_same_outputs_and_gradients(name):
     """Five steps of four episodes drawn from four observations with three distinct in-view rows
     (0 and 3 see the same categories in other boxes): the loss and every parameter gradient match

@@ -265,6 +265,9 @@ class NavModel(nn.Module):
 
     # -- reuse across steps ----------------------------------------------------------------------
     _in_view_memo: InViewMemo | None = None
+    #: The model reads the in-view row only in :meth:`RecurrentNavModel.critic_context`, with
+    #: parameters no inner step adapts: the memo holds under ``adapt: all`` too.
+    in_view_outside_encoders: ClassVar[bool] = False
 
     @contextlib.contextmanager
     def memoizing_in_view(self, memo: InViewMemo | None = None) -> Iterator[InViewMemo | None]:
@@ -273,8 +276,9 @@ class NavModel(nn.Module):
         (:mod:`mapless.models.memo`; pass ``memo`` to go on with an earlier block's store).
 
         Use it only where their parameters stay fixed: a training rollout, an evaluation. Yields None
-        and changes nothing when the encoders adapt per episode (``adapt: all``)."""
-        if self.adaptive and not self.adapts_policy_only:
+        and changes nothing when the encoders adapt per episode (``adapt: all``), unless the model's
+        only in-view computations are outside them (:attr:`in_view_outside_encoders`)."""
+        if self.adaptive and not self.adapts_policy_only and not self.in_view_outside_encoders:
             yield None
             return
         memo = memo if memo is not None else InViewMemo()
@@ -347,6 +351,14 @@ class RecurrentNavModel(NavModel, abc.ABC):
         self, described: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
         """``(LSTM input [B, D], extra critic input or None)`` from :meth:`describe`'s output."""
+
+    def critic_context(self, obs: dict[str, Tensor]) -> Tensor | None:
+        """An extra critic input of the observation alone, from parameters no inner step adapts
+        (``outer_only``), or None (the default: the critic reads what :meth:`encode` returns). Where
+        a model has one, it is computed once over every row of a call (episodes and steps), with the
+        shared weights, outside the per-episode encoders; its in-view computations go through the
+        memo even when the encoders adapt (:meth:`memoizing_in_view`)."""
+        return None
 
     def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
         """Critic ``[B, 1]`` on the new hidden state (and the encoder's extra critic input)."""
@@ -509,6 +521,28 @@ class RecurrentNavModel(NavModel, abc.ABC):
         fast: dict[str, Tensor] | None = None,
         steps: bool = False,
     ) -> tuple[Tensor, Tensor | None]:
+        """``(LSTM input, critic input)``: :meth:`_encoded_inputs`, with :meth:`critic_context` as
+        the critic input where the model has one: computed once over all rows, with the shared
+        weights, outside the per-episode encoders."""
+        x, critic_input = self._encoded_inputs(obs, hidden, prev_policy, dtype, fast, steps)
+        if critic_input is not None or type(self).critic_context is RecurrentNavModel.critic_context:
+            return x, critic_input
+        shape = prev_policy.shape[:2] if steps else prev_policy.shape[:1]
+        flat = {key: value.flatten(0, len(shape) - 1) for key, value in obs.items()}
+        with _autocast(dtype, prev_policy.device):
+            context = self.critic_context(flat)
+        context = context if dtype is None else _like(context, hidden[0])
+        return x, context.unflatten(0, shape)
+
+    def _encoded_inputs(
+        self,
+        obs: dict[str, Tensor],
+        hidden: tuple[Tensor, Tensor],
+        prev_policy: Tensor,
+        dtype: torch.dtype | None = None,
+        fast: dict[str, Tensor] | None = None,
+        steps: bool = False,
+    ) -> tuple[Tensor, Tensor | None]:
         """``encode(describe(obs))``: under autocast to a reduced ``dtype`` with the result back in
         the state's dtype, and per episode under ``vmap`` where ``fast`` holds encoder weights.
         ``steps``: every input has a second dimension of steps (``[B, L, ...]``, one episode's
@@ -520,7 +554,7 @@ class RecurrentNavModel(NavModel, abc.ABC):
         if steps and not per_episode:  # the same weights for every row: one batch of B · L rows
             shape = prev_policy.shape[:2]
             flat = {key: value.flatten(0, 1) for key, value in obs.items()}
-            x, critic_input = self._encoded(
+            x, critic_input = self._encoded_inputs(
                 flat, tuple(t.flatten(0, 1) for t in hidden), prev_policy.flatten(0, 1), dtype
             )
             return x.unflatten(0, shape), None if critic_input is None else critic_input.unflatten(0, shape)

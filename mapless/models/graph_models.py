@@ -107,10 +107,18 @@ class GveModel(LearnedLossMixin, SavnEmbeddingMixin, RecurrentNavModel):
         normalized_column_init(self.critic_linear, 1.0)
         self._build_learned_loss(with_key_linear=True)
 
+    in_view_outside_encoders = True
+
     def encode(
         self, obs: dict[str, Tensor], hidden: tuple[Tensor, Tensor], prev_policy: Tensor
     ) -> tuple[Tensor, Tensor | None]:
-        return self._base_embedding(obs, prev_policy), self.gve(obs["context"][..., 0])
+        return self._base_embedding(obs, prev_policy), None
+
+    def critic_context(self, obs: dict[str, Tensor]) -> Tensor:
+        """The graph embedding g: outer-only, so once over every row of a call, outside the
+        per-episode encoders, and, as sp's graph, once per distinct in-view row within a memo."""
+        shared = self.fixed_term("gve", self.gve.shared_term)
+        return self.per_in_view(obs["context"][..., 0], lambda rows: self.gve(rows, shared))
 
     def value(self, h: Tensor, critic_input: Tensor | None) -> Tensor:
         return self.critic_linear(torch.cat([h, critic_input], dim=1))
