@@ -101,6 +101,9 @@ def test_the_probe_finds_the_keys_each_model_reads() -> None:
     assert "features" not in observation_keys(cvmeta) and "context" in observation_keys(cvmeta)
     assert {"features", "target_embedding"} <= set(observation_keys(a3c))
     assert set(observation_keys(a3c)) <= set(OBSERVATION_KEYS)
+    # gve's graph is a critic context, read outside encode: the probe still sees its in-view row.
+    gve = build_model("gve", knowledge=knowledge, hidden_size=16)
+    assert {"features", "context", "target_embedding"} <= set(observation_keys(gve))
 
 
 def _listings(tree: ast.AST) -> list[int]:

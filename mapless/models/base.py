@@ -527,12 +527,12 @@ class RecurrentNavModel(NavModel, abc.ABC):
         x, critic_input = self._encoded_inputs(obs, hidden, prev_policy, dtype, fast, steps)
         if critic_input is not None or type(self).critic_context is RecurrentNavModel.critic_context:
             return x, critic_input
-        shape = prev_policy.shape[:2] if steps else prev_policy.shape[:1]
-        flat = {key: value.flatten(0, len(shape) - 1) for key, value in obs.items()}
+        # Rows of steps as one batch; a single step's obs as given (the probe records its keys).
+        flat = {key: value.flatten(0, 1) for key, value in obs.items()} if steps else obs
         with _autocast(dtype, prev_policy.device):
             context = self.critic_context(flat)
         context = context if dtype is None else _like(context, hidden[0])
-        return x, context.unflatten(0, shape)
+        return x, context.unflatten(0, prev_policy.shape[:2]) if steps else context
 
     def _encoded_inputs(
         self,
