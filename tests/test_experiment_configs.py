@@ -44,9 +44,9 @@ SHIPPED = [(e, b) for e in EXPERIMENTS for b in BUDGETS if f"{e}_{b}" in RESOLVE
 def test_every_shipped_experiment_file_has_captured_values() -> None:
     files = {f"{e}_{b}" for e in EXPERIMENTS for b in BUDGETS if config_path(e, b).is_file()}
     assert files <= set(RESOLVED)
-    # The ones whose files went, each now the budget as it is.
+    # The ones whose files went, each now the budget as it is (Table 1 at the hour has its own).
     assert set(RESOLVED) - files == {
-        *(f"table1_{b}" for b in BUDGETS),
+        *(f"table1_{b}" for b in BUDGETS if b != "medium"),
         "figure3_full",
         "figure3_small",
         "figures45_small",
@@ -132,6 +132,39 @@ def test_the_medium_budget_is_small_for_longer_nested_keys_merged() -> None:
     assert cvmeta_medium.ppo == cvmeta_small.ppo and cvmeta_medium.frames > cvmeta_small.frames
     # The one change of recipe: the hour's cvmeta takes the second-order meta-gradient (row f).
     assert cvmeta_small.meta.first_order and not cvmeta_medium.meta.first_order
+
+
+def test_table1_at_the_hour_is_the_papers_whole_table_with_three_seeds_of_a3c_and_cvmeta() -> None:
+    from mapless.experiments.pipelines import planned_runs
+    from mapless.experiments.render import _seed_counts
+
+    config = load_experiment("table1", "medium")
+    assert config.eval.protocol == "reference" and len(config.models) == 10
+    runs = planned_runs(config)
+    assert runs == {m: 3 if m in ("a3c", "cvmeta") else 2 for m in config.models if m != "random"}
+    assert sum(runs.values()) == 20
+    assert _seed_counts(config) == "2 training seed(s) (a3c, cvmeta: 3)"
+    # --seeds is every trained model's count, model_seeds' included; --set seeds=N leaves those.
+    single = load_experiment("table1", "medium", seeds=1)
+    assert set(planned_runs(single).values()) == {1} and _seed_counts(single) == "1 training seed(s)"
+    assert planned_runs(load_experiment("table1", "medium", overrides=["seeds=1"]))["cvmeta"] == 3
+    # A narrower lineup keeps the file's model_seeds; those of models left out train nothing.
+    narrow = load_experiment("table1", "medium", overrides=["models=[random,sp]"])
+    assert planned_runs(narrow) == {"sp": 2} and _seed_counts(narrow) == "2 training seed(s)"
+
+
+@pytest.mark.parametrize(
+    ("seeds", "message"),
+    [
+        ("{svan: 3}", "svan"),
+        ("{random: 2}", "'model_seeds.random': the random agent trains no seeds"),
+        ("{cvmeta: 0}", "'model_seeds.cvmeta': must be an integer >= 1, got 0"),
+        ("{cvmeta: true}", "'model_seeds.cvmeta': must be an integer >= 1, got True"),
+    ],
+)
+def test_model_seeds_of_no_trained_model_or_of_no_count_are_refused(seeds: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        load_experiment("table1", "smoke", overrides=["models=[random,a3c,cvmeta]", f"model_seeds={seeds}"])
 
 
 @pytest.mark.parametrize("budget", ["medium", "long"])

@@ -139,7 +139,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "tables, about an hour), medium, long or full (the paper's)",
     )
     rep.add_argument(
-        "--seeds", type=positive_int, help="training seeds per run (default: the config's seeds)"
+        "--seeds",
+        type=positive_int,
+        help="training seeds of every trained model, model_seeds included (default: the config's seeds and model_seeds)",
     )
     rep.add_argument(
         "--config",

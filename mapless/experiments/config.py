@@ -132,6 +132,8 @@ class ExperimentConfig:
 
     models: the compared models (Table 1/2, figures); Table 3 always ablates ``focus``.
     seeds: training seeds per run (mean ± std over them).
+    model_seeds: seeds of the named models instead of ``seeds`` (Table 1 at the hour: three for a3c
+        and cvmeta, two for the rest); an entry of a model outside ``models`` trains nothing.
     train: TrainConfig fields shared by every run (nested mapping, validated by TrainConfig).
     per_model: TrainConfig overrides per model name (e.g. a smaller batch for the meta models).
     rooms: room types of Table 2 (training rooms) and Table 3 (ablated rooms).
@@ -150,6 +152,7 @@ class ExperimentConfig:
     budget: str = "smoke"
     models: tuple[str, ...] = ("random", "a3c", "cvmeta")
     seeds: int = 1
+    model_seeds: dict = field(default_factory=dict)
     train: dict = field(default_factory=dict)
     per_model: dict = field(default_factory=dict)
     eval: ExperimentEval = field(default_factory=ExperimentEval)
@@ -167,11 +170,18 @@ class ExperimentConfig:
             raise UnknownNameError("experiment", self.experiment, EXPERIMENTS)
         if self.seeds < 1:
             raise ConfigError(f"config key 'seeds': must be >= 1, got {self.seeds}")
+        for name, count in self.model_seeds.items():
+            # A model left out of the lineup (--set 'models=[...]') keeps its entry, as per_model;
+            # a name that is no trained model is a typo.
+            if name == "random":
+                raise ConfigError("config key 'model_seeds.random': the random agent trains no seeds")
+            if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+                raise ConfigError(f"config key 'model_seeds.{name}': must be an integer >= 1, got {count!r}")
         if not self.models:  # an experiment of no model trains nothing and reports an empty table
             raise ConfigError("config key 'models': the list is empty; name at least one model")
         from mapless.models import model_class
 
-        for name in (*self.models, self.focus, *self.per_model):
+        for name in (*self.models, self.focus, *self.per_model, *self.model_seeds):
             model_class(name)
         for room in (*self.rooms, *self.eval.rooms):
             if room not in ROOM_TYPES:
@@ -180,6 +190,10 @@ class ExperimentConfig:
             if name not in self.ablations:
                 raise UnknownNameError("ablation row", name, tuple(self.ablations))
         self.ablation_table()  # each row's fields are checked here
+
+    def seeds_of(self, model: str) -> int:
+        """The training seeds of ``model``: its ``model_seeds`` entry, else ``seeds``."""
+        return self.model_seeds.get(model, self.seeds)
 
     def ablation_table(self) -> dict[str, AblationRow]:
         """The ablation rows to run, by name, in the config's order."""
@@ -248,6 +262,16 @@ def read_experiment(source: Path | dict, overrides: list[str] | None = None) -> 
     return from_dict(ExperimentConfig, merge_layers(experiment_layers(source, overrides))[0])
 
 
+def seed_overrides(source: Path | dict, overrides: list[str] | None, seeds: int | None) -> list[str]:
+    """``overrides``, then, for ``--seeds N``, ``seeds=N`` and ``model_seeds.M=N`` for every model the
+    experiment gives its own count: the command line's seed count is every trained model's."""
+    extra = list(overrides or [])
+    if seeds is None:
+        return extra
+    extra.append(f"seeds={seeds}")
+    return extra + [f"model_seeds.{m}={seeds}" for m in read_experiment(source, extra).model_seeds]
+
+
 def load_experiment(
     experiment: str,
     budget: str,
@@ -262,8 +286,8 @@ def load_experiment(
         raise MaplessError(
             f"no experiment config {path} (experiments: {', '.join(EXPERIMENTS)}; budgets: {', '.join(BUDGETS)})"
         )
-    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds is not None else [])]
-    config = read_experiment(path or shipped_experiment(experiment, budget), extra)
+    config = read_experiment(path or shipped_experiment(experiment, budget), seed_overrides(
+        path or shipped_experiment(experiment, budget), overrides, seeds))  # fmt: skip
     if config.experiment != experiment:
         raise ConfigError(
             f"{path or config_path(experiment, budget)} configures {config.experiment!r}, not {experiment!r}"

@@ -56,7 +56,7 @@ class Row:
             return []
         return [
             PlannedRun.of(config, self.model, self.variant, 1 + s, self.extra)
-            for s in range(self.seeds or config.seeds)
+            for s in range(self.seeds or config.seeds_of(self.model))
         ]
 
 
@@ -116,7 +116,7 @@ def _setting(config: ExperimentConfig, ev: Evaluator) -> Setting:
 
 
 def table1_rows(config: ExperimentConfig) -> dict[str, Row]:
-    """Every model of the config, by name."""
+    """Every model of the config, by name (each with its seeds, :meth:`ExperimentConfig.seeds_of`)."""
     return {model: Row(model) for model in config.models}
 
 

@@ -47,12 +47,22 @@ def write_report(experiment: str, record: object, out: Path, command: str) -> di
     return {"payload": payload, "markdown": text}
 
 
+def _seed_counts(config) -> str:
+    """``2 training seed(s)``, or with the models that train more or fewer: ``… (a3c, cvmeta: 3)``."""
+    others = {}
+    for model, count in config.model_seeds.items():
+        if count != config.seeds and model in config.models:
+            others.setdefault(count, []).append(model)
+    extra = "; ".join(f"{', '.join(models)}: {count}" for count, models in sorted(others.items()))
+    return f"{config.seeds} training seed(s)" + (f" ({extra})" if extra else "")
+
+
 def _header(setting: Setting, title: str, command: str) -> list[str]:
     config = setting.config
     return [
         f"# {title}",
         "",
-        f"Budget `{config.budget}`, {config.seeds} training seed(s); {setting.report_episodes} report episodes "
+        f"Budget `{config.budget}`, {_seed_counts(config)}; {setting.report_episodes} report episodes "
         f"({config.eval.per_room} per room type); protocol: {setting.protocol_label}.",
         stamp(command),
         "Cells: mean (± std over seeds) [95 % bootstrap interval over episodes], in %.",

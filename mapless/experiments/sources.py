@@ -11,6 +11,7 @@ from mapless.experiments.config import (
     experiment_layers,
     load_experiment,
     run_layers,
+    seed_overrides,
     shipped_experiment,
 )
 
@@ -38,8 +39,8 @@ def experiment_text(
     from mapless.experiments.pipelines import ROWS
 
     config = load_experiment(experiment, budget, path, overrides, seeds)  # checks every run
-    extra = [*(overrides or []), *([f"seeds={seeds}"] if seeds is not None else [])]
-    _, sources = merge_layers(experiment_layers(path or shipped_experiment(experiment, budget), extra))
+    source = path or shipped_experiment(experiment, budget)
+    _, sources = merge_layers(experiment_layers(source, seed_overrides(source, overrides, seeds)))
     shown = {k: v for k, v in to_dict(config).items() if k not in ("train", "per_model")}
     parts = [f"# {experiment} at the {budget} budget", format_sources(shown, sources)]
     seen = set()
