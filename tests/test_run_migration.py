@@ -34,7 +34,9 @@ def test_the_migrations_copy_of_the_former_rule_names_every_shipped_run_as_it_di
     # rename nothing of a real grid.
     old = json.loads((DATA / "run_folders_old_hash.json").read_text())
     new = run_folders(captured_names())
-    assert set(old) == set(new) and len(old) > 100
+    # Runs a shipped experiment gained after the identity changed (Table 1 at the hour's whole
+    # lineup) never had an old name.
+    assert set(old) <= set(new) and len(old) > 100
     renamed = {}
     for key in old:
         experiment, budget, protocol, row = key.split()
