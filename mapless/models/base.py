@@ -534,16 +534,8 @@ class RecurrentNavModel(NavModel, abc.ABC):
         context = context if dtype is None else _like(context, hidden[0])
         return x, context.unflatten(0, prev_policy.shape[:2]) if steps else context
 
-    def _encoded_inputs(
-        self,
-        obs: dict[str, Tensor],
-        hidden: tuple[Tensor, Tensor],
-        prev_policy: Tensor,
-        dtype: torch.dtype | None = None,
-        fast: dict[str, Tensor] | None = None,
-        steps: bool = False,
-    ) -> tuple[Tensor, Tensor | None]:
-        """``encode(describe(obs))``: under autocast to a reduced ``dtype`` with the result back in
+    def _encoded_inputs(self, obs, hidden, prev_policy, dtype, fast, steps) -> tuple[Tensor, Tensor | None]:
+        """:meth:`_encoded`'s arguments. ``encode(describe(obs))``: under autocast to a reduced ``dtype`` with the result back in
         the state's dtype, and per episode under ``vmap`` where ``fast`` holds encoder weights.
         ``steps``: every input has a second dimension of steps (``[B, L, ...]``, one episode's
         weights for all of them), and so have the results."""
@@ -555,7 +547,7 @@ class RecurrentNavModel(NavModel, abc.ABC):
             shape = prev_policy.shape[:2]
             flat = {key: value.flatten(0, 1) for key, value in obs.items()}
             x, critic_input = self._encoded_inputs(
-                flat, tuple(t.flatten(0, 1) for t in hidden), prev_policy.flatten(0, 1), dtype
+                flat, tuple(t.flatten(0, 1) for t in hidden), prev_policy.flatten(0, 1), dtype, None, False
             )
             return x.unflatten(0, shape), None if critic_input is None else critic_input.unflatten(0, shape)
         if dtype is None and not per_episode:
