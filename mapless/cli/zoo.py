@@ -231,24 +231,25 @@ def add_results(args: argparse.Namespace) -> int:
     if args.cache_dir is not None:  # where the report's episodes are rebuilt from, as reproduce reads it
         os.environ["MAPLESS_CACHE"] = str(args.cache_dir)
     wanted = args.models.split(",") if args.models else None
-    for model, (results, episodes, manifest) in report_rows(report, args.report.name, wanted).items():
+    for model, (results, episodes, manifest) in report_rows(report, args.report, wanted).items():
         entry = write_entry(args.experiment, model.replace(":", "."), None, results, episodes, manifest)
         sr = entry.manifest["success"]["mean"]
         print(f"added {entry.name}: results only, {len(results)} seed(s), SR {100 * sr:.1f} %")
     return 0
 
 
-def report_rows(report: dict, source: str, models: list[str] | None) -> dict:
+def report_rows(report: dict, path: Path, models: list[str] | None) -> dict:
     """``{model: (per-seed results, episodes, manifest)}`` of an experiment report's rows. The
     episodes are rebuilt from the report's config as the experiment chose them, and each seed's
     results must be on them, episode by episode."""
     from mapless.config import from_dict
     from mapless.episodes.protocols import get_protocol
-    from mapless.evaluate.metrics import EpisodeResult
+    from mapless.evaluate.report import read_results
     from mapless.experiments.config import ExperimentConfig
     from mapless.experiments.evaluator import Evaluator, experiment_scenes
     from mapless.provenance import provenance, run_provenance
 
+    source = path.name
     config = from_dict(ExperimentConfig, report["config"])
     episodes = Evaluator(config, log=lambda line: None).report_episodes
     records = {r.get("model"): r for r in report["models"]}
@@ -260,7 +261,7 @@ def report_rows(report: dict, source: str, models: list[str] | None) -> dict:
     rows = {}
     for model in models or list(records):
         record = records[model]
-        results = [[EpisodeResult.from_dict(d) for d in seed] for seed in record.get("episodes", [])]
+        _, results = read_results(f"{path}:{model}")  # its checks of the records, one reader
         runs = [r for r in record.get("runs", []) if r.get("run_dir")]
         trained = [run_provenance(Path(r["run_dir"]) / "config.yaml") for r in runs]
         manifest = {
