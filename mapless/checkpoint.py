@@ -19,7 +19,8 @@ tensors, numbers, strings, lists and dicts and are read with ``torch.load(weight
 The run's config is stored as plain data: the trainers write their
 :class:`~mapless.train.config.TrainConfig`, and this module, which evaluation imports, reads back
 only the :class:`~mapless.models.ModelConfig` it builds the model from (:func:`model_config_of`);
-whoever wants the whole config names its type (:func:`config_of`), so nothing here imports train/.
+whoever wants the whole config reads it with
+:func:`mapless.train.config.stored_train_config` (any layout), so nothing here imports train/.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import torch
 
@@ -39,8 +40,6 @@ from mapless.config import from_dict, read_mapping, to_dict
 from mapless.errors import MaplessError
 from mapless.files import replacing
 from mapless.models import ModelConfig, NavModel, build_model
-
-C = TypeVar("C")
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.jsonl"
@@ -208,12 +207,6 @@ def _copy(tree: Any) -> Any:
     if isinstance(tree, list | tuple):
         return type(tree)(_copy(v) for v in tree)
     return tree
-
-
-def config_of(payload: dict, config_type: type[C]) -> C:
-    """The run's config of a checkpoint or model file, as ``config_type`` (the trainers write a
-    :class:`~mapless.train.config.TrainConfig`)."""
-    return from_dict(config_type, payload["config"])
 
 
 def model_config_of(payload: dict) -> ModelConfig:
@@ -386,7 +379,7 @@ def load_model(
 
     Returns ``(model in eval mode on device, the run's config as plain data, counters)``; the model is
     built from the config's ``model`` entry (inner learning rate and steps for adaptive models
-    included), and ``from_dict(TrainConfig, config)`` types the rest.
+    included), and ``mapless.train.config.stored_train_config(config)`` types the rest.
     """
     file = resolve_model_file(path)
     payload = load_file(file, map_location=device)

@@ -6,6 +6,7 @@ typo or a malformed value fails before any work starts, with the offending key i
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 import typing
@@ -144,6 +145,34 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
             node = node[part]
         node[parts[-1]] = value
     return data
+
+
+def move_keys(data: dict, moves: list[tuple[str, str]]) -> dict:
+    """``data`` (not modified) with the value at each ``old`` dotted path of ``moves`` moved to its
+    ``new`` path; a path ``data`` lacks is skipped, and a section emptied by the moves is dropped."""
+    out = copy.deepcopy(data)
+    emptied = set()
+    for old, new in moves:
+        *sections, key = old.split(".")
+        node = out
+        if not all(isinstance(node := node.get(s), dict) for s in sections) or key not in node:
+            continue
+        value = node.pop(key)
+        if sections and not node:
+            emptied.add(tuple(sections))
+        *sections, key = new.split(".")
+        node = out
+        for section in sections:
+            node = node.setdefault(section, {})
+        node[key] = value
+    for sections in sorted(emptied, key=len, reverse=True):
+        *parents, last = sections
+        node = out
+        for section in parents:
+            node = node[section]
+        if not node[last]:
+            del node[last]
+    return out
 
 
 def merge_mappings(base: dict, top: dict) -> dict:

@@ -35,7 +35,7 @@ from mapless.offline import export_scene, import_episode_file, load_offline_scen
 from mapless.sim import cache
 from mapless.sim.config import SimConfig
 from mapless.sim.episode import Episode
-from mapless.train.config import TrainConfig
+from mapless.train.config import TrainConfig, stored_train_config
 from mapless.train.run import resume_config
 
 SEED = 25
@@ -385,7 +385,7 @@ def test_checkpoints(tmp_path):
     def read() -> None:
         """What ``mapless eval`` reads (the whole config, then the model): refused, or loaded with the
         weights and counters that were written, never other ones."""
-        ckpt.config_of(ckpt.load_file(model_file), TrainConfig)
+        stored_train_config(ckpt.load_file(model_file)["config"])
         model, _, counters = ckpt.load_model(model_file)
         for name, value in model.state_dict().items():
             assert torch.equal(value, weights[name]), f"{name} read damaged"

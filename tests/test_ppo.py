@@ -333,11 +333,11 @@ def _gradients(
 
 @pytest.mark.parametrize("navigation_loss", ["episode", "after_interaction"])
 def test_the_papers_navigation_loss_reads_no_step_of_the_interaction_phase(navigation_loss: str) -> None:
-    """Under ``meta.navigation_loss: after_interaction`` the first k steps of every episode are out
+    """Under ``ppo.meta.navigation_loss: after_interaction`` the first k steps of every episode are out
     of the loss: changing their advantages changes no gradient; under ``episode`` it does."""
     k = 3
     trainer, segment = _adaptive_trainer(
-        f"model.interaction_steps={k}", "model.max_inner_updates=1", f"meta.navigation_loss={navigation_loss}",
+        f"model.interaction_steps={k}", "model.max_inner_updates=1", f"ppo.meta.navigation_loss={navigation_loss}",
         "ppo.normalize_advantages=false",
     )  # fmt: skip
     assert (segment.mask[k:].sum() > 0) and (segment.mask[:k].sum() > 0)
@@ -361,9 +361,9 @@ def test_the_learned_loss_takes_no_step_while_the_expert_term_is_on(
     imitation: float, from_imitation: bool, phi_steps: bool
 ) -> None:
     """φ learns to stand in for the navigation loss only: an update whose loss holds the expert's
-    cross-entropy leaves it without gradient (unless ``meta.learned_loss_from_imitation``)."""
+    cross-entropy leaves it without gradient (unless ``ppo.meta.learned_loss_from_imitation``)."""
     trainer, segment = _adaptive_trainer(
-        "ppo.imitation_coef=1", f"meta.learned_loss_from_imitation={str(from_imitation).lower()}"
+        "ppo.imitation_coef=1", f"ppo.meta.learned_loss_from_imitation={str(from_imitation).lower()}"
     )
     torch.manual_seed(0)
     grads = _gradients(trainer, segment, torch.randn_like(segment.values), imitation)
@@ -375,13 +375,13 @@ def test_the_learned_loss_takes_no_step_while_the_expert_term_is_on(
 
 
 def test_a_frozen_learned_loss_takes_no_step_and_the_inner_steps_still_adapt() -> None:
-    """``meta.train_learned_loss: false`` (ablation row m): φ gets no gradient, θ_0 exactly the one
+    """``ppo.meta.train_learned_loss: false`` (ablation row m): φ gets no gradient, θ_0 exactly the one
     it gets with φ trained (the same forward: φ starts where the seed puts it), and that gradient is
     not the one of an episode without inner steps: the fast weights still move along φ's gradient."""
     grads = {}
     for name, overrides in {
         "trained": (),
-        "frozen": ("meta.train_learned_loss=false",),
+        "frozen": ("ppo.meta.train_learned_loss=false",),
         "no inner step": ("model.max_inner_updates=0",),
     }.items():
         trainer, segment = _adaptive_trainer(*overrides)
@@ -398,8 +398,10 @@ def test_a_frozen_learned_loss_takes_no_step_and_the_inner_steps_still_adapt() -
 
 
 def test_a_frozen_learned_loss_is_refused_outside_ppo() -> None:
-    with pytest.raises(ConfigError, match=r"meta\.train_learned_loss': algo is a3c, which ignores it"):
-        tiny_config("cvmeta", "algo=a3c", "meta.train_learned_loss=false")
+    with pytest.raises(
+        ConfigError, match=r"config key 'ppo.meta': algo is a3c, which reads only the a3c: block"
+    ):
+        tiny_config("cvmeta", "algo=a3c", "ppo.meta.train_learned_loss=false")
 
 
 def test_without_meta_learning_an_adaptive_model_trains_on_segments_as_a_plain_policy() -> None:
@@ -461,7 +463,7 @@ def test_a_minibatch_whose_every_step_is_in_the_interaction_phase_gives_no_nan()
     """Episodes no longer than k under ``after_interaction``: nothing is in the loss, and advantage
     normalisation over no step must not turn the gradient into NaN."""
     trainer, segment = _adaptive_trainer(
-        "model.interaction_steps=9", "model.max_inner_updates=1", "meta.navigation_loss=after_interaction"
+        "model.interaction_steps=9", "model.max_inner_updates=1", "ppo.meta.navigation_loss=after_interaction"
     )
     assert segment.mask.shape[0] <= 9
     grads = _gradients(trainer, segment, torch.randn_like(segment.values))

@@ -16,15 +16,25 @@ import yaml
 from captures import captured_names, run_folders
 
 from mapless.cli import main as cli_main
-from mapless.config import save_config, to_dict
+from mapless.config import move_keys, save_config, to_dict
 from mapless.errors import MaplessError
 from mapless.experiments import load_experiment, train_config
 from mapless.experiments.finished import NoTraining, finished_only
 from mapless.experiments.launch import PlannedRun
-from mapless.experiments.migrate import _LEGACY_KEYS, _move_keys, migrate, old_run_hash
+from mapless.experiments.migrate import earlier_run_hashes, migrate, old_run_hash
 from mapless.experiments.runs import run_dir_for
+from mapless.train.config import LAYOUT_CHANGES
 
 DATA = Path(__file__).parent / "data"
+
+
+def _pinned_run_config(key: str):
+    """The training config of a run pinned in tests/data/run_folders*.json, keyed ``experiment budget
+    protocol row`` (tests/captures.py)."""
+    experiment, budget, protocol, row = key.split()
+    config = load_experiment(experiment, budget, overrides=[f"eval.protocol={protocol}", "train.threads=1"])
+    extra = config.ablation_table()[row].train if row in config.ablations else None
+    return train_config(config, config.focus if extra else row, 1, extra)
 
 
 @pytest.mark.slow  # resolves every shipped experiment twice over: 12 s of the fast tier
@@ -39,28 +49,39 @@ def test_the_migrations_copy_of_the_former_rule_names_every_shipped_run_as_it_di
     assert set(old) <= set(new) and len(old) > 100
     renamed = {}
     for key in old:
-        experiment, budget, protocol, row = key.split()
-        config = load_experiment(
-            experiment, budget, overrides=[f"eval.protocol={protocol}", "train.threads=1"]
-        )
-        extra = config.ablation_table()[row].train if row in config.ablations else None
-        cfg = train_config(config, config.focus if extra else row, 1, extra)
+        cfg = _pinned_run_config(key)
         assert old_run_hash(cfg) == old[key].rsplit("__", 1)[1], key
         renamed.setdefault(old[key], new[key])
         assert renamed[old[key]] == new[key]  # runs shared under the former rule stay shared
 
 
-def _grid_folder(config, cfg, old_layout: bool = False) -> Path:
-    """A finished run folder as the former code made it: named by the former hash, its config.yaml
-    the config the grid trained with (its thread share, no bar), a final model, a snapshot and a
-    cached evaluation that names the model file by path."""
-    folder = Path(config.runs_dir) / f"{cfg.model.name}__all__s{cfg.seed}__{old_run_hash(cfg)}"
-    (folder / "snapshots").mkdir(parents=True)
+@pytest.mark.slow  # resolves every shipped experiment twice over
+def test_the_rule_before_the_ppo_meta_block_names_every_shipped_run_as_it_did() -> None:
+    # run_folders_before_ppo_meta.json is run_folders.json as the rule before the ppo.meta: block
+    # wrote it: the config as laid out then, hashed whole.
+    before = json.loads((DATA / "run_folders_before_ppo_meta.json").read_text())
+    new = run_folders(captured_names())
+    assert set(before) == set(new)
+    for key in before:
+        cfg = _pinned_run_config(key)
+        assert earlier_run_hashes(cfg)[0] == before[key].rsplit("__", 1)[1], key
+    # Every run's name changes with the layout, since its hash reads the whole config.
+    assert not set(before.values()) & set(new.values())
+
+
+def _grid_folder(config, cfg, rule: int = 0, laid_out_before: int | None = None) -> Path:
+    """A finished run folder as a former rule named it (0: the first rule, n: the rule before
+    ``LAYOUT_CHANGES[n]``), its config.yaml the config the grid trained with (its thread share, no
+    bar) in today's layout or as laid out before ``LAYOUT_CHANGES[laid_out_before]``, a final
+    model, a snapshot and a cached evaluation that names the model file by path."""
     trained = cfg.replace(threads=cfg.threads or 1, progress=False)
-    save_config(trained, folder / "config.yaml", "trained by the grid")
-    if old_layout:  # a folder made before the a3c: and env.reward: blocks
-        data = _move_keys(to_dict(trained), [(new, old) for old, new in _LEGACY_KEYS])
-        (folder / "config.yaml").write_text(yaml.safe_dump(data))
+    named = old_run_hash(cfg) if rule == 0 else earlier_run_hashes(cfg)[len(LAYOUT_CHANGES) - 1 - rule]
+    folder = Path(config.runs_dir) / f"{cfg.model.name}__all__s{cfg.seed}__{named}"
+    (folder / "snapshots").mkdir(parents=True)
+    data = to_dict(trained)
+    for _, moves in reversed(LAYOUT_CHANGES[laid_out_before:] if laid_out_before is not None else ()):
+        data = move_keys(data, [(new, old) for old, new in moves])
+    (folder / "config.yaml").write_text(yaml.safe_dump(data))
     (folder / "final_model.pt").write_bytes(b"model")
     (folder / "snapshots" / "model_000064.pt").write_bytes(b"snapshot")
     (folder / "eval").mkdir()
@@ -72,9 +93,18 @@ def _grid_folder(config, cfg, old_layout: bool = False) -> Path:
 def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: Path, capsys) -> None:
     runs = tmp_path / "runs" / "small"
     config = load_experiment("table1", "small", overrides=[f"runs_dir={runs}"])
-    a3c, cvmeta = train_config(config, "a3c", 1), train_config(config, "cvmeta", 2)
-    folders = [_grid_folder(config, a3c), _grid_folder(config, cvmeta, old_layout=True)]
-    assert all(f != run_dir_for(config, c, "all") for f, c in zip(folders, (a3c, cvmeta), strict=True))
+    runs_of = [
+        train_config(config, "a3c", 1),
+        train_config(config, "cvmeta", 2),
+        train_config(config, "cvmeta", 3),
+    ]
+    a3c = runs_of[0]
+    folders = [
+        _grid_folder(config, runs_of[0]),  # the first rule's name, config.yaml rewritten since
+        _grid_folder(config, runs_of[1], laid_out_before=0),  # the first rule, the first layout
+        _grid_folder(config, runs_of[2], rule=1, laid_out_before=1),  # before the ppo.meta: block
+    ]
+    assert all(f != run_dir_for(config, c, "all") for f, c in zip(folders, runs_of, strict=True))
     bad = runs / "mlp__all__s1__0123abcd"  # a config.yaml that does not parse
     bad.mkdir()
     (bad / "config.yaml").write_text("model: [unclosed\n")
@@ -85,13 +115,13 @@ def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: 
     assert cli_main(["runs", "migrate", str(tmp_path / "runs"), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert f"{folders[0]} -> {run_dir_for(config, a3c, 'all')}" in out
-    assert "would rename 2 of 4 run folders" in out and all(f.is_dir() for f in folders)
+    assert "would rename 3 of 5 run folders" in out and all(f.is_dir() for f in folders)
 
     steps = migrate(tmp_path / "runs", log=lambda line: None)
     assert sorted(s.folder.name for s in steps if s.new_name is None) == [edited.name, bad.name]
     reasons = {s.folder.name: s.reason for s in steps}
     assert "does not parse" in reasons[bad.name] and "does not give the folder's hash" in reasons[edited.name]
-    for folder, cfg in zip(folders, (a3c, cvmeta), strict=True):
+    for folder, cfg in zip(folders, runs_of, strict=True):
         found = PlannedRun.of(config, cfg.model.name, "all", cfg.seed)
         assert not folder.exists() and found.run_dir == run_dir_for(config, cfg, "all") and found.finished
         assert (found.run_dir / "snapshots" / "model_000064.pt").read_bytes() == b"snapshot"
@@ -100,7 +130,7 @@ def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: 
     # Once is enough: a second pass moves nothing.
     again = migrate(tmp_path / "runs", log=lambda line: None)
     assert not any(s.new_name for s in again)
-    assert sum("today's hash already" in s.reason for s in again) == 2
+    assert sum("today's hash already" in s.reason for s in again) == 3
 
 
 def test_migrate_never_overwrites_a_folder(tmp_path: Path) -> None:

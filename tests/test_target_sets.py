@@ -40,7 +40,7 @@ from mapless.sim.config import SimConfig
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.scene_data import pose_key
-from mapless.train.config import EnvConfig, TrainConfig
+from mapless.train.config import EnvConfig, stored_train_config
 from mapless.train.run import train
 
 pytestmark = pytest.mark.usefixtures("single_torch_thread")
@@ -220,7 +220,9 @@ def test_a_hoz22_run_trains_and_eval_flags_targets_it_never_trained_for(tmp_path
     run = tmp_path / "run"
     summary = train(config, run)
     assert summary["episodes"] == 8 and summary["frames"] > 0
-    assert ckpt.config_of(ckpt.load_file(run / ckpt.FINAL_MODEL_FILE), TrainConfig).env.target_set == "hoz22"
+    assert (
+        stored_train_config(ckpt.load_file(run / ckpt.FINAL_MODEL_FILE)["config"]).env.target_set == "hoz22"
+    )
 
     fp = fingerprint(SimConfig())
     own, other = tmp_path / "own.json.gz", tmp_path / "other.json.gz"

@@ -9,7 +9,7 @@ parameters θ take one SGD step on the learned interaction loss:
 and the trainer's outer loss reads the episode's steps, each evaluated with the θ_i that acted. That
 is SAVN's code. The paper's eq. 3/5 writes one adaptation after the first k steps and the navigation
 loss on the rest of the trajectory: ``max_inner_updates = 1`` here, with the trainer's outer loss
-restricted to the steps after the first k (PPO's ``meta.navigation_loss: after_interaction``).
+restricted to the steps after the first k (PPO's ``ppo.meta.navigation_loss: after_interaction``).
 Every episode b owns its fast weights θ^b; because episode b's interaction loss depends only on θ^b,
 one ``autograd.grad`` of Σ_b L_int^b gives every episode's own gradient.
 

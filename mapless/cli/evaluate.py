@@ -248,10 +248,10 @@ def _eval(args: argparse.Namespace) -> int:
     target_set = protocol.target_set  # an untrained baseline is scored on the protocol's own sets
     trained_rule = None
     if path.exists():
-        from mapless.checkpoint import config_of, load_file, resolve_model_file
-        from mapless.train.config import TrainConfig
+        from mapless.checkpoint import load_file, resolve_model_file
+        from mapless.train.config import stored_train_config
 
-        cfg = config_of(load_file(resolve_model_file(path)), TrainConfig)
+        cfg = stored_train_config(load_file(resolve_model_file(path))["config"])
         library = LibrarySpec.for_env(cfg.env, offline_dir=args.offline_dir)
         trained_rule = cfg.env.sim.visibility_distance
         target_set = cfg.env.target_set

@@ -66,6 +66,7 @@ def _train(args: argparse.Namespace) -> int:
     """Train a model: recurrent PPO, or the references' batched or async A3C (docs/guide/training.md).
     Under torchrun every rank runs this command."""
     from mapless.config import ConfigError
+    from mapless.train.config import in_current_layout
     from mapless.train.recipes import load_train_config, train_file_layers
     from mapless.train.run import config_edits, default_run_dir, resume_config, train
 
@@ -80,7 +81,7 @@ def _train(args: argparse.Namespace) -> int:
             raise ConfigError("a resumed run keeps the success rule it was trained under; drop --protocol")
         config, state = resume_config(args.resume, overrides)
         if args.print_config:
-            layers = [(str(args.resume / "checkpoint"), state["config"])]
+            layers = [(str(args.resume / "checkpoint"), in_current_layout(state["config"]))]
             layers += [("--set", apply_overrides({}, overrides))] if overrides else []
             print(format_sources(to_dict(config), merge_layers(layers)[1]))
             return 0

@@ -120,7 +120,6 @@ def add_entry(args: argparse.Namespace) -> int:
         CONFIG_FILE,
         FORMAT_VERSION,
         atomic_save,
-        config_of,
         load_file,
         resolve_model_file,
     )
@@ -136,7 +135,7 @@ def add_entry(args: argparse.Namespace) -> int:
     )
     from mapless.experiments.config import BUDGETS
     from mapless.provenance import provenance, run_provenance
-    from mapless.train.config import TrainConfig
+    from mapless.train.config import stored_train_config
 
     run_dir: Path = args.run
     if not run_dir.is_dir():
@@ -144,7 +143,7 @@ def add_entry(args: argparse.Namespace) -> int:
     recorded = _recorded(args.results, run_dir) if args.results else None
     model_file = recorded.model_file if recorded and recorded.model_file else resolve_model_file(run_dir)
     payload = load_file(model_file)
-    cfg = config_of(payload, TrainConfig)
+    cfg = stored_train_config(payload["config"])
     library, protocol = run_library(cfg, args.protocol, args.cache_dir)
     split = args.split if args.split == "paper" else split_for(protocol.name, args.split)
     episodes = load_episodes(
@@ -379,13 +378,13 @@ def zoo_or_run_results(spec: str, other: str) -> tuple[str, list]:
 def _run_on_entry(run_dir: Path, entry) -> tuple[str, list]:
     """A run's final model (or latest snapshot) on a zoo entry's episodes, under its protocol and
     action-sampling settings; cached in RUN/eval/ as other evaluations are."""
-    from mapless.checkpoint import config_of, load_file, resolve_model_file
+    from mapless.checkpoint import load_file, resolve_model_file
     from mapless.evaluate.runner import AgentSpec, EvalSettings
     from mapless.evaluate.selection import cache_file, cached_evaluate, episodes_digest
-    from mapless.train.config import TrainConfig
+    from mapless.train.config import stored_train_config
 
     model_file = resolve_model_file(run_dir)
-    cfg = config_of(load_file(model_file), TrainConfig)
+    cfg = stored_train_config(load_file(model_file)["config"])
     manifest = entry.manifest
     library, _ = run_library(cfg, manifest["protocol"])
     episodes = entry.episodes()

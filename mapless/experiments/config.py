@@ -344,6 +344,6 @@ def run_layers(config: ExperimentConfig, model: str, seed: int, extra: dict | No
 
 def train_config(config: ExperimentConfig, model: str, seed: int, extra: dict | None = None):
     """The TrainConfig of one run, its layers (:func:`run_layers`) read one over the other."""
-    from mapless.train.config import TrainConfig
+    from mapless.train.config import train_config_from
 
-    return from_dict(TrainConfig, merge_layers(run_layers(config, model, seed, extra))[0])
+    return train_config_from(merge_layers(run_layers(config, model, seed, extra))[0])

@@ -1,19 +1,20 @@
 """``mapless runs migrate RUNS_DIR``: the one-time renaming of the run folders that ``mapless
-reproduce`` made before 2026-12-07 (docs/changelog.md) to the folder names of today's run identity.
+reproduce`` named under an earlier rule to the folder names of today's run identity.
 
-Until then a run folder's hash (:func:`mapless.experiments.runs.run_dir_for`) read the training
-config in the layout of before the ``a3c:`` and ``env.reward:`` blocks (2fdbb67), and left out the keys
-added later where they did not change the run (:func:`old_run_hash`, kept here and nowhere else).
-Today's hash reads the config as it is laid out (:func:`mapless.experiments.runs.run_hash`), so a
-finished run would otherwise be trained again under a new name. Each folder is checked before it
-moves: its config.yaml must parse and must give the folder's own hash under the old rule; a folder
-whose new name is taken, or whose trainer is still writing to it, stays where it is. The cached
-evaluations under ``eval/`` name their model files by path, so they are moved along with the folder.
+A run folder's hash (:func:`mapless.experiments.runs.run_dir_for`) reads the training config as it is
+laid out, so each change of the layout (:data:`mapless.train.config.LAYOUT_CHANGES`) renames every
+run: a finished run would otherwise be trained again under a new name. The earlier rules, kept here
+and nowhere else: the first read the config in the layout before the ``a3c:`` and ``env.reward:``
+blocks (2fdbb67) and left out the keys added later where they did not change the run
+(:func:`old_run_hash`); each later one read the config as laid out before the next change
+(:func:`earlier_run_hashes`). Each folder is checked before it moves: its config.yaml must parse (in
+any layout) and must give the folder's own hash under one of the earlier rules; a folder whose new
+name is taken, or whose trainer is still writing to it, stays where it is. The cached evaluations
+under ``eval/`` name their model files by path, so they are moved along with the folder.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import json
@@ -22,36 +23,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapless.config import ConfigError, from_dict, read_mapping, to_dict
+from mapless.config import move_keys, read_mapping, to_dict
 from mapless.errors import MaplessError
 from mapless.files import write_text
 from mapless.models.registry import model_class
+from mapless.train.config import LAYOUT_CHANGES
 
 #: ``<model>__<variant>__s<seed>__<hash>``, the name of an experiment's run folder.
 RUN_FOLDER = re.compile(r"^(?P<model>.+?)__(?P<variant>.+)__s(?P<seed>\d+)__(?P<hash>[0-9a-f]{8})$")
-
-#: Where each key of the layout before the ``a3c:`` and ``env.reward:`` blocks lives now (old path,
-#: new path); the old hash reads the old paths.
-_A3C_KEYS = (
-    *(
-        (f"optim.{k}", f"a3c.{k}")
-        for k in ("lr", "beta1", "beta2", "eps", "amsgrad", "grad_clip", "meta_grad_clip")
-    ),
-    *((f"loss.{k}", f"a3c.{k}") for k in ("gamma", "tau", "beta", "value_coef")),
-    *((k, f"a3c.{k}") for k in ("mode", "batch_size", "workers")),
-)
-_REWARD_KEYS = tuple(
-    (f"env.{k}", f"env.reward.{k}")
-    for k in (
-        "step_penalty",
-        "success_reward",
-        "parent_reward",
-        "parent_reward_rule",
-        "progress_reward",
-        "parent_reward_rooms",
-    )
-)
-_LEGACY_KEYS = _A3C_KEYS + _REWARD_KEYS
 
 
 def _meta_learns_under_ppo(cfg) -> bool:
@@ -67,66 +46,49 @@ _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
     ("meta.navigation_loss", _meta_learns_under_ppo),
     ("meta.learned_loss_from_imitation", _meta_learns_under_ppo),
     ("env.parent_reward_rule", lambda c: c.parent_reward),
-    ("meta.train_learned_loss", lambda c: not c.meta.train_learned_loss),
+    ("meta.train_learned_loss", lambda c: not c.ppo.meta.train_learned_loss),
     ("ppo.whole_episodes", lambda c: c.ppo.whole_episodes and not _meta_learns_under_ppo(c)),
 )
 
 
-def _move_keys(data: dict, moves: list[tuple[str, str]]) -> dict:
-    """``data`` (not modified) with the value at each ``old`` path moved to its ``new`` path; a
-    section emptied by the moves is dropped."""
-    out = copy.deepcopy(data)
-    emptied = set()
-    for old, new in moves:
-        *sections, key = old.split(".")
-        node = out
-        if not all(isinstance(node := node.get(s), dict) for s in sections) or key not in node:
-            continue
-        value = node.pop(key)
-        if sections and not node:
-            emptied.add(tuple(sections))
-        *sections, key = new.split(".")
-        node = out
-        for section in sections:
-            node = node.setdefault(section, {})
-        node[key] = value
-    for sections in sorted(emptied, key=len, reverse=True):
-        *parents, last = sections
-        node = out
-        for section in parents:
-            node = node[section]
-        if not node[last]:
-            del node[last]
-    return out
+def _hash(data: dict) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:8]
+
+
+def _laid_out_before(train_cfg, change: int) -> dict:
+    """What a run hash reads of ``train_cfg`` (no progress bar, no logger), in the layout from before
+    ``LAYOUT_CHANGES[change]``: every later change's keys moved back, newest first."""
+    data = to_dict(dataclasses.replace(train_cfg, progress=False))
+    del data["logger"]
+    for _, moves in reversed(LAYOUT_CHANGES[change:]):
+        data = move_keys(data, [(new, old) for old, new in moves])
+    return data
 
 
 def old_run_hash(train_cfg) -> str:
-    """The run-folder hash of before 2026-12-07: the config in the layout before the ``a3c:`` and
-    ``env.reward:`` blocks, less the progress bar, the logger and the later keys that did not
-    change the run."""
-    data = _move_keys(
-        to_dict(dataclasses.replace(train_cfg, progress=False)), [(n, o) for o, n in _LEGACY_KEYS]
-    )
-    del data["logger"]
+    """The first run-folder hash: the config in the layout before the ``a3c:`` and ``env.reward:``
+    blocks, less the progress bar, the logger and the later keys that did not change the run."""
+    data = _laid_out_before(train_cfg, 0)
     for path, changes_training in _LATER_KEYS:
         if not changes_training(train_cfg):
             section, key = path.split(".")
             del data[section][key]
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:8]
+    return _hash(data)
+
+
+def earlier_run_hashes(train_cfg) -> list[str]:
+    """The folder hashes ``train_cfg``'s run had under every earlier rule, newest first: the config
+    as laid out before each change of :data:`LAYOUT_CHANGES` since the first, then the first rule
+    (:func:`old_run_hash`)."""
+    later = [_hash(_laid_out_before(train_cfg, c)) for c in range(len(LAYOUT_CHANGES) - 1, 0, -1)]
+    return [*later, old_run_hash(train_cfg)]
 
 
 def stored_config(data: dict):
-    """The TrainConfig of a run folder's config.yaml, in today's layout or the one before the
-    ``a3c:`` and ``env.reward:`` blocks."""
-    from mapless.train.config import TrainConfig
+    """The TrainConfig of a run folder's config.yaml, in today's layout or an earlier one."""
+    from mapless.train.config import stored_train_config
 
-    try:
-        return from_dict(TrainConfig, data)
-    except ConfigError:
-        moved = _move_keys(data, list(_LEGACY_KEYS))
-        if moved == data:
-            raise
-        return from_dict(TrainConfig, moved)
+    return stored_train_config(data)
 
 
 @dataclass(frozen=True)
@@ -161,7 +123,7 @@ def plan(folder: Path) -> Migration:
         planned = config.replace(threads=threads)
         if run_hash(planned) == match["hash"]:
             return Migration(folder, reason="named by today's hash already")
-        if old_run_hash(planned) == match["hash"]:
+        if match["hash"] in earlier_run_hashes(planned):
             new = f"{match['model']}__{match['variant']}__s{match['seed']}__{run_hash(planned)}"
             if (folder.parent / new).exists():
                 return Migration(folder, reason=f"{new} exists already; nothing is overwritten")

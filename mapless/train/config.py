@@ -13,7 +13,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Literal
 
-from mapless.config import ConfigError
+from mapless.config import ConfigError, from_dict, move_keys
 from mapless.errors import MaplessError
 from mapless.models.base import ModelConfig
 from mapless.models.registry import MODELS, model_class
@@ -186,12 +186,23 @@ NAVIGATION_LOSSES = ("episode", "after_interaction")
 
 @dataclass(frozen=True)
 class MetaConfig:
-    """Meta-learning of adaptive models (savn, gve, spatt, cvmeta). ``first_order`` is read by both
-    algorithms; the other three only by PPO, for a model that meta-learns, and are refused
-    elsewhere (:data:`PPO_META_KEYS`).
+    """Meta-learning of adaptive models (savn, gve, spatt, cvmeta), as both algorithms read it.
 
     first_order: first-order meta-gradient instead of SAVN's second order.
-    navigation_loss: which steps of an episode the outer (navigation) loss reads under PPO:
+    The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
+    ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too;
+    what only PPO's meta-learning reads is in ``ppo.meta`` (:class:`PPOMetaConfig`).
+    """
+
+    first_order: bool = False
+
+
+@dataclass(frozen=True)
+class PPOMetaConfig:
+    """What the PPO trainer's meta-learning reads (``ppo.meta``): only for a model that meta-learns
+    (adaptive, ``model.adapt`` not ``none``), and refused for any other.
+
+    navigation_loss: which steps of an episode the outer (navigation) loss reads:
         ``episode``, every step, each with the weights that acted (SAVN's code), or
         ``after_interaction``, only the steps after the first k (the paper's text: L_nav on
         D_nav, the rest of the trajectory; with ``model.max_inner_updates: 1`` that is the paper's
@@ -200,15 +211,11 @@ class MetaConfig:
         imitation term (``ppo.imitation_coef``) is on. Off (default): φ receives no gradient from an
         update whose loss holds the expert's cross-entropy, a signal that does not exist at test
         time, so φ only ever learns to stand in for the navigation loss.
-    train_learned_loss: whether φ is meta-trained at all (PPO only). Off: φ keeps its
-        initialisation, so the inner steps still move the fast weights, but along a gradient that
-        nothing has taught (an ablation row: what meta-training φ adds to the inner steps;
-        docs/results/ablation.md).
-    The inner learning rate, k and the number of inner steps are model settings (``model.inner_lr``,
-    ``model.interaction_steps``, ``model.max_inner_updates``) because evaluation adapts with them too.
+    train_learned_loss: whether φ is meta-trained at all. Off: φ keeps its initialisation, so the
+        inner steps still move the fast weights, but along a gradient that nothing has taught (an
+        ablation row: what meta-training φ adds to the inner steps; docs/results/ablation.md).
     """
 
-    first_order: bool = False
     navigation_loss: str = "episode"
     learned_loss_from_imitation: bool = False
     train_learned_loss: bool = True
@@ -216,14 +223,9 @@ class MetaConfig:
     def __post_init__(self) -> None:
         _require(
             self.navigation_loss in NAVIGATION_LOSSES,
-            "meta.navigation_loss",
+            "ppo.meta.navigation_loss",
             f"{self.navigation_loss!r} is not one of {NAVIGATION_LOSSES}",
         )
-
-
-#: The meta-learning settings only PPO reads, and only for a model that meta-learns; set
-#: anywhere else they are refused (:meth:`TrainConfig._check_ppo_meta_keys`).
-PPO_META_KEYS = ("navigation_loss", "learned_loss_from_imitation", "train_learned_loss")
 
 
 @dataclass(frozen=True)
@@ -250,6 +252,7 @@ class PPOConfig:
     bootstrap_time_limit: adaptive models' whole episodes cut by the step limit are bootstrapped
         with V of the state they were cut in, as the other models' segments are (off: the
         references' R = 0 there, which makes a blind ``Done`` free near the limit).
+    meta: the meta-learning settings only PPO reads (:class:`PPOMetaConfig`).
     """
 
     envs: int = 64
@@ -271,6 +274,7 @@ class PPOConfig:
     imitation_coef: float = 0.0
     imitation_frames: int = 0
     bootstrap_time_limit: bool = False
+    meta: PPOMetaConfig = field(default_factory=PPOMetaConfig)
 
     def __post_init__(self) -> None:
         _require(
@@ -429,24 +433,17 @@ class TrainConfig:
         )
 
     def _check_ppo_meta_keys(self, model: type) -> None:
-        """Refuses a setting of :data:`PPO_META_KEYS` that the run would ignore, saying where it is read."""
-        default = MetaConfig()
-        changed = [k for k in PPO_META_KEYS if getattr(self.meta, k) != getattr(default, k)]
-        if not changed:
+        """Refuses ``ppo.meta`` settings for a model that does not meta-learn, which would ignore them
+        (under ``algo: a3c`` the whole ``ppo:`` block is refused already)."""
+        changed = _changed_keys(self.ppo.meta)
+        if self.algo != "ppo" or not changed or (model.is_adaptive() and self.model.adapt != "none"):
             return
-        where = (
-            "it belongs to the PPO trainer's meta-learning: algo: ppo with an adaptive model "
-            f"({', '.join(n for n, c in MODELS.items() if c.is_adaptive())}) whose model.adapt is not none"
+        adaptive = ", ".join(n for n, c in MODELS.items() if c.is_adaptive())
+        raise ConfigError(
+            f"config key 'ppo.meta.{changed[0]}': model {self.model.name!r} (model.adapt "
+            f"{self.model.adapt}) does not meta-learn, so the run would ignore it; ppo.meta is read "
+            f"for an adaptive model ({adaptive}) whose model.adapt is not none"
         )
-        if self.algo != "ppo":
-            raise ConfigError(
-                f"config key 'meta.{changed[0]}': algo is {self.algo}, which ignores it; {where}"
-            )
-        if not model.is_adaptive() or self.model.adapt == "none":
-            raise ConfigError(
-                f"config key 'meta.{changed[0]}': model {self.model.name!r} (model.adapt {self.model.adapt}) "
-                f"does not meta-learn, so the run would ignore it; {where}"
-            )
 
     @property
     def mode(self) -> str:
@@ -463,3 +460,68 @@ class TrainConfig:
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
+
+
+#: Each change of the config's layout since run configs were first stored (docs/changelog.md): what
+#: it made and where each moved key lives now, ``(old path, new path)``, oldest change first. A config stored before a
+#: change (a checkpoint's, a run folder's config.yaml) is read through it
+#: (:func:`stored_train_config`), and ``mapless runs migrate`` recomputes the run-folder names of
+#: earlier layouts from it (:mod:`mapless.experiments.migrate`).
+LAYOUT_CHANGES: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = (
+    (
+        "the a3c: and env.reward: blocks",
+        (
+            *(
+                (f"optim.{k}", f"a3c.{k}")
+                for k in ("lr", "beta1", "beta2", "eps", "amsgrad", "grad_clip", "meta_grad_clip")
+            ),
+            *((f"loss.{k}", f"a3c.{k}") for k in ("gamma", "tau", "beta", "value_coef")),
+            *((k, f"a3c.{k}") for k in ("mode", "batch_size", "workers")),
+            *(
+                (f"env.{k}", f"env.reward.{k}")
+                for k in (
+                    "step_penalty",
+                    "success_reward",
+                    "parent_reward",
+                    "parent_reward_rule",
+                    "progress_reward",
+                    "parent_reward_rooms",
+                )
+            ),
+        ),
+    ),
+    (
+        "the ppo.meta: block",
+        tuple(
+            (f"meta.{k}", f"ppo.meta.{k}")
+            for k in ("navigation_loss", "learned_loss_from_imitation", "train_learned_loss")
+        ),
+    ),
+)
+
+
+def in_current_layout(data: dict) -> dict:
+    """A stored training config (plain data) with the keys of every earlier layout moved to where
+    they live now (:data:`LAYOUT_CHANGES`); a config in today's layout comes back unchanged."""
+    return move_keys(data, [move for _, moves in LAYOUT_CHANGES for move in moves])
+
+
+def stored_train_config(data: dict) -> TrainConfig:
+    """The TrainConfig of a stored config in today's layout or an earlier one."""
+    return from_dict(TrainConfig, in_current_layout(data))
+
+
+def train_config_from(data: dict) -> TrainConfig:
+    """The TrainConfig of a config being written (files and ``--set``), which must be in today's
+    layout: a key of an earlier one is refused, naming where it lives now."""
+    for change, moves in LAYOUT_CHANGES:
+        for old, new in moves:
+            node: object = data
+            for part in old.split("."):
+                node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+            if node is not _ABSENT:
+                raise ConfigError(f"config key {old!r} is now {new!r} (moved into {change})")
+    return from_dict(TrainConfig, data)
+
+
+_ABSENT = object()

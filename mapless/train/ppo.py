@@ -19,7 +19,7 @@ the current parameters. SAVN's schedule, the default: after every k = ``model.in
 steps (at most ``model.max_inner_updates`` times) the fast weights take one SGD step on the learned
 interaction loss of the last k steps, and the PPO loss reads every step of the episode, each with the
 weights that acted. The paper's text instead adapts once after the first k steps and computes the
-navigation loss on the rest: ``model.max_inner_updates: 1`` with ``meta.navigation_loss:
+navigation loss on the rest: ``model.max_inner_updates: 1`` with ``ppo.meta.navigation_loss:
 after_interaction``. The meta-gradient (second order, or first order with ``meta.first_order``) flows
 through the adaptation. The probability ratio is that of the adapted policy against the adapted
 policy that acted.
@@ -27,8 +27,8 @@ policy that acted.
 With ``ppo.imitation_coef`` > 0 the loss also holds the cross-entropy to the simulator's
 shortest-path expert on the agent's own steps (an imitation warm start, annealed over
 ``ppo.imitation_frames``; off in the paper's protocol). While it is on, the learned loss φ takes no
-step (``meta.learned_loss_from_imitation``): φ is meta-trained to stand in for the navigation loss,
-never for the expert's cross-entropy, which no test-time agent has. ``meta.train_learned_loss:
+step (``ppo.meta.learned_loss_from_imitation``): φ is meta-trained to stand in for the navigation loss,
+never for the expert's cross-entropy, which no test-time agent has. ``ppo.meta.train_learned_loss:
 false`` freezes φ at its initialisation in every update (an ablation).
 
 PPO trains with dropout off (the model in ``eval()`` mode), because the ratio compares the policy
@@ -270,7 +270,7 @@ class PPOTrainer(SynchronousTrainer):
         ppo = self.config.ppo
         self.optimizer.zero_grad(set_to_none=True)
         mask = segment.mask[:, columns]
-        if self.inner is not None and self.config.meta.navigation_loss == "after_interaction":
+        if self.inner is not None and self.config.ppo.meta.navigation_loss == "after_interaction":
             # The paper's L_nav reads D_nav, the steps after the first k (the interaction phase).
             mask = mask.clone()
             mask[: self.model.config.interaction_steps] = 0
@@ -315,7 +315,7 @@ class PPOTrainer(SynchronousTrainer):
             total.backward()
         else:
             self.inner.backward(state, total)
-            meta = self.config.meta
+            meta = self.config.ppo.meta
             if not meta.train_learned_loss or (imitation > 0 and not meta.learned_loss_from_imitation):
                 # φ must learn to stand in for the navigation loss, not for the expert's
                 # cross-entropy, which does not exist at test time: no φ step in this update.

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mapless.config import ConfigError, Layer, apply_overrides, from_dict, merge_layers, read_mapping, section
+from mapless.config import ConfigError, Layer, apply_overrides, merge_layers, read_mapping, section
 from mapless.configs import config_label, configs_dir
 from mapless.errors import UnknownNameError
 from mapless.models import MODELS, ModelConfig
-from mapless.train.config import TrainConfig
+from mapless.train.config import TrainConfig, train_config_from
 
 
 def recipes_dir() -> Path:
@@ -82,4 +82,4 @@ def train_file_layers(path: str | Path | None, overrides: list[str] | None = Non
 def load_train_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
     """A training config file with ``--set`` overrides, read over its recipe (overrides apply first,
     so ``--set model.name=X`` picks model X's recipe)."""
-    return from_dict(TrainConfig, merge_layers(train_file_layers(path, overrides))[0])
+    return train_config_from(merge_layers(train_file_layers(path, overrides))[0])

@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from mapless import checkpoint as ckpt
-from mapless.config import ConfigError, apply_overrides, from_dict, read_mapping, save_config, to_dict
+from mapless.config import ConfigError, apply_overrides, read_mapping, save_config, to_dict
 from mapless.errors import MaplessError
 from mapless.files import unwritable
 from mapless.models import model_folder_name
@@ -18,7 +18,7 @@ from mapless.provenance import comment_of, provenance_comment, resumed_comment
 from mapless.train import distributed as dist
 from mapless.train.batched import BatchedTrainer
 from mapless.train.builders import LibraryFactory, prepare_scenes
-from mapless.train.config import TrainConfig
+from mapless.train.config import TrainConfig, in_current_layout, train_config_from
 from mapless.train.hogwild import AsyncTrainer
 from mapless.train.ppo import PPOTrainer
 
@@ -43,8 +43,8 @@ def resume_config(run_dir: str | Path, overrides: list[str] | None = None) -> tu
             f"config key {fixed[0].split('=', 1)[0]!r}: a resumed run keeps its model, seed, algorithm, mode "
             "and batch layout (the checkpoint's state was made with them); start a new run to change them"
         )
-    data = apply_overrides(payload["config"], overrides or [])
-    return from_dict(TrainConfig, data), payload
+    data = apply_overrides(in_current_layout(payload["config"]), overrides or [])
+    return train_config_from(data), payload
 
 
 def config_edits(run_dir: str | Path, resume: dict) -> list[str]:
