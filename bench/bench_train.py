@@ -10,7 +10,7 @@ Memory is the peak resident set of the trainer process, plus the largest async w
                                 [--modes batched,batched-bf16,async] [--workers 2] [--rounds 1]
                                 [--scenes train:kitchen] [--json out.json]
 
-Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``precision: bf16``: bfloat16 encoders
+Modes: ``batched`` and ``async`` (float32), ``batched-bf16`` (``a3c.precision: bf16``: bfloat16 encoders
 and LSTM products). A batched mode with ``@N`` (e.g. ``batched-bf16@2``) runs N data-parallel ranks
 under ``torchrun`` (docs/guide/training.md), each with ``threads / N`` threads and its own B episodes: on
 this 2-core machine two 1-thread ranks use the cores better than one 2-thread process. The ratio is
@@ -55,7 +55,7 @@ def _measure(
         [
             f"model.name={model}",
             f"a3c.mode={mode}",
-            f"precision={precision or 'fp32'}",
+            f"a3c.precision={precision or 'fp32'}",
             f"env.scenes={scenes}",
             f"a3c.batch_size={batch}",
             f"a3c.workers={workers}",

@@ -1,7 +1,7 @@
 """One settings block per algorithm: the A3C settings are ``a3c:`` beside ``ppo:``, only the
-chosen algorithm's block may be set (tests/test_ppo.py), PPO's meta-learning keys (``ppo.meta``) or
-``precision``, which only A3C reads, are refused where the run would ignore them, saying where they
-are read; the reward settings are one ``env.reward:`` block; a key of an earlier layout is refused
+chosen algorithm's block may be set (tests/test_ppo.py), so ``a3c.precision`` is refused under PPO,
+and PPO's meta-learning keys (``ppo.meta``) are refused for a model that does not meta-learn, saying
+where they are read; the reward settings are one ``env.reward:`` block; a key of an earlier layout is refused
 naming where it lives now, and a stored config of an earlier layout reads as today's."""
 
 from __future__ import annotations
@@ -52,6 +52,8 @@ def test_a_key_of_an_earlier_layout_is_refused_naming_where_it_lives_now() -> No
         load_train_config(None, ["episodes=8", "algo=ppo", "meta.navigation_loss=after_interaction"])
     with pytest.raises(ConfigError, match=r"config key 'optim.lr' is now 'a3c.lr'"):
         load_train_config(None, ["episodes=8", "optim.lr=0.001"])
+    with pytest.raises(ConfigError, match=r"config key 'precision' is now 'a3c.precision'"):
+        load_train_config(None, ["episodes=8", "precision=bf16"])
     with pytest.raises(ConfigError, match=r"config key 'env.step_penalty' is now 'env.reward.step_penalty'"):
         load_train_config(None, ["episodes=8", "env.step_penalty=-0.1"])
     with pytest.raises(
@@ -75,20 +77,21 @@ def test_a_stored_config_of_an_earlier_layout_reads_as_todays() -> None:
         for _, moves in reversed(LAYOUT_CHANGES[change:]):
             earlier = move_keys(earlier, [(new, old) for old, new in moves])
         assert earlier != data and stored_train_config(earlier) == today
-    before_ppo_meta = move_keys(data, [(new, old) for old, new in LAYOUT_CHANGES[-1][1]])
+    before_ppo_meta = move_keys(data, [(new, old) for _, moves in LAYOUT_CHANGES[1:] for old, new in moves])
     assert before_ppo_meta["meta"] == {
         "first_order": False, "navigation_loss": "after_interaction",
         "learned_loss_from_imitation": False, "train_learned_loss": False,
     }  # fmt: skip
     assert "meta" not in before_ppo_meta["ppo"]
+    assert before_ppo_meta["precision"] == "fp32" and "precision" not in before_ppo_meta["a3c"]
 
 
 def test_precision_is_read_by_a3c_only() -> None:
-    assert load_train_config(None, ["episodes=8", "precision=bf16"]).precision == "bf16"
+    assert load_train_config(None, ["episodes=8", "a3c.precision=bf16"]).a3c.precision == "bf16"
     with pytest.raises(
-        ConfigError, match="config key 'precision': bf16 is implemented for the A3C trainers only"
+        ConfigError, match=r"config key 'a3c.precision': algo is ppo, which reads only the ppo: block"
     ):
-        load_train_config(None, ["episodes=8", "precision=bf16", "algo=ppo"])
+        load_train_config(None, ["episodes=8", "a3c.precision=bf16", "algo=ppo"])
 
 
 def test_a_recipes_block_of_the_other_algorithm_is_left_out() -> None:

@@ -222,7 +222,7 @@ def test_partition_keeps_scenes_whole_and_balances(episodes):
 
 def test_bf16_evaluation_is_training_precision_and_float32_up_to_rounding():
     """``bf16`` means one thing: the evaluator's policy at bf16 is the training actor's at
-    ``precision: bf16`` (bfloat16 encoders and LSTM products), and float32's up to rounding."""
+    ``a3c.precision: bf16`` (bfloat16 encoders and LSTM products), and float32's up to rounding."""
     from mapless.models.synthetic import synthetic_observations
     from mapless.train.rollout import make_actor
 

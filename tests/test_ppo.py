@@ -230,7 +230,7 @@ def test_ppo_run_resumes_exactly(tmp_path: Path, model: str) -> None:
         ("ppo.lr=nan", "ppo.lr"),
         ("ppo.lam=1.5", "ppo.lam"),
         ("a3c.mode=async", r"a3c\.mode.*algo is ppo"),
-        ("precision=bf16", "ppo trains in float32"),
+        ("a3c.precision=bf16", r"a3c\.precision.*algo is ppo"),
     ],
 )
 def test_impossible_ppo_settings_are_clear_errors(override: str, message: str) -> None:

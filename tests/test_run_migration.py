@@ -55,16 +55,22 @@ def test_the_migrations_copy_of_the_former_rule_names_every_shipped_run_as_it_di
         assert renamed[old[key]] == new[key]  # runs shared under the former rule stay shared
 
 
-@pytest.mark.slow  # resolves every shipped experiment twice over
-def test_the_rule_before_the_ppo_meta_block_names_every_shipped_run_as_it_did() -> None:
-    # run_folders_before_ppo_meta.json is run_folders.json as the rule before the ppo.meta: block
-    # wrote it: the config as laid out then, hashed whole.
-    before = json.loads((DATA / "run_folders_before_ppo_meta.json").read_text())
+@pytest.mark.slow  # resolves every shipped experiment twice over, per rule
+@pytest.mark.parametrize(
+    ("change", "pinned"),
+    [(1, "run_folders_before_ppo_meta.json"), (2, "run_folders_before_a3c_precision.json")],
+)
+def test_each_later_rule_names_every_shipped_run_as_it_did(change: int, pinned: str) -> None:
+    # Each file is run_folders.json as the rule before LAYOUT_CHANGES[change] wrote it: the config
+    # as laid out then, hashed whole.
+    before = json.loads((DATA / pinned).read_text())
     new = run_folders(captured_names())
     assert set(before) == set(new)
     for key in before:
         cfg = _pinned_run_config(key)
-        assert earlier_run_hashes(cfg)[0] == before[key].rsplit("__", 1)[1], key
+        assert earlier_run_hashes(cfg)[len(LAYOUT_CHANGES) - 1 - change] == before[key].rsplit("__", 1)[1], (
+            key
+        )
     # Every run's name changes with the layout, since its hash reads the whole config.
     assert not set(before.values()) & set(new.values())
 
@@ -97,12 +103,14 @@ def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: 
         train_config(config, "a3c", 1),
         train_config(config, "cvmeta", 2),
         train_config(config, "cvmeta", 3),
+        train_config(config, "a3c", 2),
     ]
     a3c = runs_of[0]
     folders = [
         _grid_folder(config, runs_of[0]),  # the first rule's name, config.yaml rewritten since
         _grid_folder(config, runs_of[1], laid_out_before=0),  # the first rule, the first layout
         _grid_folder(config, runs_of[2], rule=1, laid_out_before=1),  # before the ppo.meta: block
+        _grid_folder(config, runs_of[3], rule=2, laid_out_before=2),  # before a3c.precision
     ]
     assert all(f != run_dir_for(config, c, "all") for f, c in zip(folders, runs_of, strict=True))
     bad = runs / "mlp__all__s1__0123abcd"  # a config.yaml that does not parse
@@ -115,7 +123,7 @@ def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: 
     assert cli_main(["runs", "migrate", str(tmp_path / "runs"), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert f"{folders[0]} -> {run_dir_for(config, a3c, 'all')}" in out
-    assert "would rename 3 of 5 run folders" in out and all(f.is_dir() for f in folders)
+    assert "would rename 4 of 6 run folders" in out and all(f.is_dir() for f in folders)
 
     steps = migrate(tmp_path / "runs", log=lambda line: None)
     assert sorted(s.folder.name for s in steps if s.new_name is None) == [edited.name, bad.name]
@@ -130,7 +138,7 @@ def test_migrate_renames_a_grids_folders_so_that_reproduce_finds_them(tmp_path: 
     # Once is enough: a second pass moves nothing.
     again = migrate(tmp_path / "runs", log=lambda line: None)
     assert not any(s.new_name for s in again)
-    assert sum("today's hash already" in s.reason for s in again) == 3
+    assert sum("today's hash already" in s.reason for s in again) == 4
 
 
 def test_migrate_never_overwrites_a_folder(tmp_path: Path) -> None:

@@ -104,7 +104,7 @@ def test_batched_losses_and_gradients_match_per_episode(name: str, first_order: 
 
 @pytest.mark.parametrize("name", ["a3c", "sp", "savn", "cvmeta"])
 def test_bf16_precision_gives_nearly_the_float32_gradient(name: str) -> None:
-    """``precision: bf16`` (bfloat16 encoders and LSTM products) plays the same episodes and its
+    """``a3c.precision: bf16`` (bfloat16 encoders and LSTM products) plays the same episodes and its
     batch gradient points where float32's does, up to bfloat16 rounding."""
     config, model, library, episodes, noise = _setup(name)
     keys = observation_keys(model)

@@ -223,7 +223,7 @@ def test_ctrl_c_and_resume_log_the_curves_of_a_straight_run(
         ("episodes=0", "episodes"),
         ("a3c.batch_size=0", "a3c.batch_size"),
         ("a3c.mode=sync", "a3c.mode"),
-        ("precision=fp16", "precision"),
+        ("a3c.precision=fp16", "a3c.precision"),
         ("a3c.learning_rate=1", "learning_rate"),
     ],
 )

@@ -39,7 +39,7 @@ class ModelAgent:
     start_every = 1
 
     def __init__(self, model, batch_size: int, bf16: bool = False):
-        """``bf16``: step at training's ``precision: bf16`` (:meth:`RecurrentNavModel.rollout_step`)."""
+        """``bf16``: step at training's ``a3c.precision: bf16`` (:meth:`RecurrentNavModel.rollout_step`)."""
         self.batch_size = batch_size
         self.model = model.eval()
         # The parameters are fixed for the whole evaluation: one bfloat16 copy of the LSTM matrices.

@@ -1,4 +1,4 @@
-"""Training precision (``TrainConfig.precision``): ``fp32`` or ``bf16``.
+"""Training precision (``a3c.precision``, :class:`~mapless.train.config.A3CConfig`): ``fp32`` or ``bf16``.
 
 ``bf16`` changes the two places of a training rollout where the arithmetic is:
 

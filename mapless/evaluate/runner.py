@@ -159,7 +159,7 @@ def target_fields(category_set: str) -> TargetFields:
 class EvalSettings:
     """``batch_size`` episodes per worker in lockstep; ``workers`` spawn processes (1: in-process);
     ``seed`` of the action sampling; ``greedy`` argmax actions; ``bf16``: run non-adaptive models
-    at training's ``precision: bf16`` (:mod:`mapless.agent.precision`; 2x faster GCNs on CPUs with
+    at training's ``a3c.precision: bf16`` (:mod:`mapless.agent.precision`; 2x faster GCNs on CPUs with
     AVX512-BF16 or AMX; the policies differ from float32 by rounding, so compare models under the
     same setting)."""
 

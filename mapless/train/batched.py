@@ -38,7 +38,7 @@ class BatchedTrainer(SynchronousTrainer):
 
     def _build_algorithm(self) -> None:
         cfg = self.config
-        self.actor = make_actor(self.model, first_order=cfg.meta.first_order, precision=cfg.precision)
+        self.actor = make_actor(self.model, first_order=cfg.meta.first_order, precision=cfg.a3c.precision)
         self.optimizer = SharedAdam.from_config(self.params, cfg.a3c)
 
     # -- one update ------------------------------------------------------------------------------

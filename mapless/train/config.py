@@ -145,6 +145,10 @@ class A3CConfig:
         episode, shared AMSGrad Adam).
     grad_clip: max gradient norm of non-adaptive models (the references clip at 100); 0 = off.
     meta_grad_clip: the same for adaptive models (SAVN applies none: 0).
+    precision: ``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast)
+        and the LSTM's weight products (forward, inner steps, weight gradient), where most of the
+        arithmetic is; parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`,
+        docs/guide/training.md "Precision"). Opt-in; PPO trains in float32.
     """
 
     mode: Literal["batched", "async"] = "batched"
@@ -161,6 +165,7 @@ class A3CConfig:
     tau: float = 1.0
     beta: float = 0.01
     value_coef: float = 0.5
+    precision: Literal["fp32", "bf16"] = "fp32"
 
     def __post_init__(self) -> None:
         _require(
@@ -178,6 +183,11 @@ class A3CConfig:
             )
         _require(0 < self.gamma <= 1, "a3c.gamma", f"must lie in (0, 1], got {self.gamma}")
         _require(0 <= self.tau <= 1, "a3c.tau", f"must lie in [0, 1], got {self.tau}")
+        _require(
+            self.precision in ("fp32", "bf16"),
+            "a3c.precision",
+            f"must be fp32 or bf16, got {self.precision!r}",
+        )
 
 
 #: The steps the outer loss of adaptive models reads (:attr:`MetaConfig.navigation_loss`).
@@ -344,12 +354,6 @@ class TrainConfig:
     """``cpu`` or ``cuda`` (batched mode; async workers always run on the CPU)."""
     threads: int = 0
     """Torch threads of the batched trainer (0 = every core); async workers use 1 each."""
-    precision: Literal["fp32", "bf16"] = "fp32"
-    """``fp32``, or ``bf16`` for bfloat16 operands in the observation encoders (autocast) and the
-    LSTM's weight products (forward, inner steps, weight gradient), where most of the arithmetic is;
-    parameters, optimizer and losses stay float32 (:mod:`mapless.agent.precision`, docs/guide/training.md
-    "Precision"). Opt-in."""
-
     checkpoint_every: int = 10_000
     """Episodes between checkpoints (a resumable one plus a model snapshot); see ``snapshots``."""
     snapshots: int = 0
@@ -386,9 +390,6 @@ class TrainConfig:
         )
         _require(self.threads >= 0, "threads", f"must be >= 0, got {self.threads}")
         _require(self.seed >= 0, "seed", f"must be >= 0 (numpy seeds are non-negative), got {self.seed}")
-        _require(
-            self.precision in ("fp32", "bf16"), "precision", f"must be fp32 or bf16, got {self.precision!r}"
-        )
         _require(self.algo in ("a3c", "ppo"), "algo", f"must be a3c or ppo, got {self.algo!r}")
         other = "ppo" if self.algo == "a3c" else "a3c"
         if changed := _changed_keys(getattr(self, other)):
@@ -400,11 +401,6 @@ class TrainConfig:
                 f"or set algo: {other}"
             )
         self._check_ppo_meta_keys(model)
-        _require(
-            self.algo == "a3c" or self.precision == "fp32",
-            "precision",
-            "bf16 is implemented for the A3C trainers only; ppo trains in float32",
-        )
         _require(self.checkpoint_every >= 1, "checkpoint_every", f"must be >= 1, got {self.checkpoint_every}")
         _require(self.snapshots >= 0, "snapshots", f"must be >= 0, got {self.snapshots}")
         _require(self.log_every >= 1, "log_every", f"must be >= 1, got {self.log_every}")
@@ -497,6 +493,7 @@ LAYOUT_CHANGES: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = (
             for k in ("navigation_loss", "learned_loss_from_imitation", "train_learned_loss")
         ),
     ),
+    ("precision in the a3c: block", (("precision", "a3c.precision"),)),
 )
 
 
@@ -520,7 +517,7 @@ def train_config_from(data: dict) -> TrainConfig:
             for part in old.split("."):
                 node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
             if node is not _ABSENT:
-                raise ConfigError(f"config key {old!r} is now {new!r} (moved into {change})")
+                raise ConfigError(f"config key {old!r} is now {new!r} (the layout change: {change})")
     return from_dict(TrainConfig, data)
 
 

@@ -91,7 +91,7 @@ def _worker(
         env = training_env(config, library, batch_size=1)
         device = torch.device("cpu")
         local = new_model(config)
-        actor = make_actor(local, first_order=config.meta.first_order, precision=config.precision)
+        actor = make_actor(local, first_order=config.meta.first_order, precision=config.a3c.precision)
         keys = observation_keys(local)
         shared_params, local_params = trainable(shared_model), trainable(local)
         optimizer = SharedAdam.from_config(shared_params, config.a3c)
