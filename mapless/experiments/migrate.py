@@ -27,7 +27,7 @@ from mapless.config import move_keys, read_mapping, to_dict
 from mapless.errors import MaplessError
 from mapless.files import write_text
 from mapless.models.registry import model_class
-from mapless.train.config import LAYOUT_CHANGES
+from mapless.train.config import LAYOUT_CHANGES, stored_train_config
 
 #: ``<model>__<variant>__s<seed>__<hash>``, the name of an experiment's run folder.
 RUN_FOLDER = re.compile(r"^(?P<model>.+?)__(?P<variant>.+)__s(?P<seed>\d+)__(?P<hash>[0-9a-f]{8})$")
@@ -84,13 +84,6 @@ def earlier_run_hashes(train_cfg) -> list[str]:
     return [*later, old_run_hash(train_cfg)]
 
 
-def stored_config(data: dict):
-    """The TrainConfig of a run folder's config.yaml, in today's layout or an earlier one."""
-    from mapless.train.config import stored_train_config
-
-    return stored_train_config(data)
-
-
 @dataclass(frozen=True)
 class Migration:
     """One run folder: its new name, or why it stays (``reason``)."""
@@ -114,7 +107,7 @@ def plan(folder: Path) -> Migration:
     if match is None:
         return Migration(folder, reason="not named <model>__<variant>__s<seed>__<hash>")
     try:
-        config = stored_config(read_mapping(folder / "config.yaml"))
+        config = stored_train_config(read_mapping(folder / "config.yaml"))
     except MaplessError as error:
         return Migration(folder, reason=f"its config.yaml does not parse ({error})")
     # The grid gives a config that names no thread count its share of the cores, which config.yaml
