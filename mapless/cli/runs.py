@@ -18,8 +18,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="rename run folders named under an earlier run-folder hash to today's (once per change)",
         description="Renames each run folder under RUNS_DIR (e.g. runs/experiments/small, or "
         "runs/experiments for every budget) whose config.yaml gives its name under an earlier run-folder "
-        "hash (each change of the config's layout renames every run: the a3c: and env.reward: blocks, "
-        "the ppo.meta: block; docs/changelog.md) to its name under today's, so that mapless reproduce "
+        "hash (each change of the config's layout renames every run: mapless.train.config.LAYOUT_CHANGES, "
+        "docs/changelog.md) to its name under today's, so that mapless reproduce "
         "finds it instead of training it again. Prints OLD -> NEW per folder; a folder whose config.yaml does not parse or "
         "does not give its name, whose new name is taken, or that a trainer holds, stays (skip: why).",
     )

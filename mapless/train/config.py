@@ -190,7 +190,7 @@ class A3CConfig:
         )
 
 
-#: The steps the outer loss of adaptive models reads (:attr:`MetaConfig.navigation_loss`).
+#: The steps the outer loss of adaptive models reads (:attr:`PPOMetaConfig.navigation_loss`).
 NAVIGATION_LOSSES = ("episode", "after_interaction")
 
 
