@@ -144,6 +144,14 @@ def test_the_listing_names_each_entry_with_its_sr_and_commits(added, capsys, mon
     assert main(["zoo", "list"]) == 0 and capsys.readouterr().out == out
 
 
+def test_the_shipped_random_rows_list_as_untrained_and_trained_rows_by_commit(monkeypatch):
+    monkeypatch.delenv(zoo.ROOT_VARIABLE, raising=False)
+    lines = {line.split(" | ")[0].strip("| "): line for line in zoo.listing().splitlines()[2:]}
+    assert "| untrained |" in lines["zoo:table1-small-seeds/random"]
+    trained_at = lines["zoo:table1-small/a3c"].split(" | ")[-2]
+    assert trained_at == zoo.entry("zoo:table1-small/a3c").manifest["training_commit"][:12]
+
+
 def test_an_empty_zoo_says_it_has_no_entries(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv(zoo.ROOT_VARIABLE, str(tmp_path / "none"))
     assert main(["zoo"]) == 0

@@ -138,7 +138,7 @@ def listing(root: str | Path | None = None) -> str:
         rows.append(
             f"| {e.name} | {_pct(sr)} | {_pct(spl)} | {m.get('episodes', {}).get('count', '?')} "
             f"| {sr.get('seeds', '?')} | {'yes' if e.has_weights else 'results only'} "
-            f"| {_short(m.get('training_commit'))} | {_short(m.get('added_commit'))} |"
+            f"| {_trained_at(m)} | {_short(m.get('added_commit'))} |"
         )
     if not rows:
         return f"no entries in the zoo ({zoo_root(root)})"
@@ -157,6 +157,13 @@ def _pct(estimate: dict) -> str:
 
 def _short(commit: str | None) -> str:
     return commit[:12] if commit else "unknown"
+
+
+def _trained_at(manifest: dict) -> str:
+    # A row of no runs (random) was never trained: "unknown" would read as lost provenance.
+    if "runs" in manifest and not manifest["runs"]:
+        return "untrained"
+    return _short(manifest.get("training_commit"))
 
 
 def half_precision(weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
