@@ -96,7 +96,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--out",
         type=Path,
         help="output folder (default: RUN/eval for a run folder, eval/ beside a model file, "
-        "reports/eval/<model> for random and oracle)",
+        "reports/eval/<model> for random and oracle, reports/eval/zoo/<experiment>/<model> for a zoo entry)",
     )
     ev.add_argument(
         "--render",

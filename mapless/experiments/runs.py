@@ -36,8 +36,8 @@ class RunTally:
     """Logs ``[run i of N]`` as each of an experiment's runs starts and, once one has been trained,
     the time left. Per model: the mean wall time of a run's training over the runs of that model
     this process trained, a resumed run's time scaled up by the share of its
-    episodes trained here, times that model's runs left. Models differ by far (an a3c run of the
-    small budget takes minutes, a cvmeta one twenty), so a model with runs left but none timed yet is
+    episodes trained here, times that model's runs left. Models differ by far (at the small budget an
+    mlp run ends at its frame budget in about 4 minutes, an a3c one at its 15), so a model with runs left but none timed yet is
     named, and the estimate covers the others only. Reused runs take seconds, so while some are left
     the estimate is an upper bound."""
 
