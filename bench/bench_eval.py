@@ -66,7 +66,7 @@ mjolnir_r = _factory("mjolnir_r")
 
 def bench_episodes(n: int) -> list:
     from mapless.episodes import evalsets
-    from mapless.evaluate.selection import load_episodes
+    from mapless.evaluate.episode_sets import load_episodes
     from mapless.sim.library import SceneLibrary
 
     if evalsets.builtin_path("test").exists():

@@ -43,8 +43,8 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
             try:
                 return _coerce(value, arg, key)
             except ConfigError as error:
-                errors.append(str(error))
-        raise ConfigError(f"config key {key!r}: {value!r} matches none of {annotation}")
+                errors.append(str(error).removeprefix(f"config key {key!r}: "))
+        raise ConfigError(f"config key {key!r}: {value!r} matches none of {annotation} ({'; '.join(errors)})")
     if dataclasses.is_dataclass(annotation):
         if not isinstance(value, dict):
             raise ConfigError(_not_a_mapping(key, value))

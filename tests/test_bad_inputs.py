@@ -55,6 +55,15 @@ def test_an_unknown_nested_key_is_quoted_whole(tmp_path):
         load_config(TrainConfig, path)
 
 
+def test_a_value_of_an_optional_key_says_why_it_is_refused(tmp_path):
+    path = tmp_path / "cache.yaml"
+    path.write_text("env:\n  cache_dir: [1]\n")
+    with pytest.raises(
+        ConfigError, match=r"'env\.cache_dir': \[1\] matches none of .* \(expected a string, got \[1\]\)"
+    ):
+        load_config(TrainConfig, path)
+
+
 def test_a_missing_offline_root_is_named_and_leaves_no_run_folder(tmp_path, capsys):
     config = tmp_path / "offline.yaml"
     config.write_text("model:\n  name: mlp\nenv:\n  scenes: FloorPlan1\nepisodes: 16\na3c: {batch_size: 4}\n")
@@ -315,6 +324,15 @@ def test_a_model_with_nan_weights_is_refused_before_evaluation(tmp_path, capsys,
         resume_config(run)
 
 
+def test_eval_options_that_do_not_apply_are_refused_before_the_episodes_load(capsys, monkeypatch):
+    monkeypatch.setattr("mapless.evaluate.episode_sets.load_episodes", lambda *a, **k: pytest.fail("loaded"))
+    err = error_of(["eval", "random", "--select"], capsys)
+    assert "--select needs a run folder" in err
+    for option in (["--no-adapt"], ["--inner-lr", "0.1"]):
+        err = error_of(["eval", "random", *option], capsys)
+        assert "--no-adapt and --inner-lr are for a trained adaptive model" in err
+
+
 def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
     """eval --out, train --run-dir and scenes show --out ended in a bare traceback, eval's after the
     whole evaluation (issue 45, point 13): each is checked first, naming the path."""
@@ -332,6 +350,12 @@ def test_an_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monke
     assert f"cannot write the run folder {blocker}: {blocker} is not a folder" in err
     err = error_of(["scenes", "show", SCENE, "--out", str(blocker / "scene.png")], capsys)
     assert f"--out {blocker / 'scene.png'}: {blocker} is not a folder" in err
+    # reproduce wrote its report last, after hours of training: its folder is checked first too.
+    monkeypatch.setattr(
+        "mapless.experiments.launch.LocalLauncher.train", lambda *a, **k: pytest.fail("trained")
+    )
+    err = error_of(["reproduce", "table1", "--budget", "smoke", "--reports", str(blocker)], capsys)
+    assert f"cannot write the report in {blocker / 'table1'}: {blocker} is not a folder" in err
 
     def denied(*args, **kwargs):  # what a user other than root meets in a folder of root's
         raise PermissionError(errno.EACCES, "Permission denied")

@@ -50,6 +50,15 @@ def test_show_writes_a_png(tmp_path, capsys):
         ),
         (("scenes", "list", "tset"), "unknown split 'tset'"),
         (("episodes", "show", "nowhere"), "neither an episode file nor"),
+        (
+            ("episodes", "show", "test", "--index", "1000", "--out", "x.png"),
+            "--index 1000: the set has episodes 0 to 999",
+        ),
+        (
+            ("episodes", "show", "test", "--index", "-1", "--out", "x.png"),
+            "--index -1: the set has episodes 0 to 999",
+        ),
+        (("interop", "episodes-export", "nowhere", "--out", "x"), "neither an episode file nor"),
     ],
 )
 def test_bad_input_is_a_clean_error(capsys, argv, message):

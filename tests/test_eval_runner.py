@@ -16,6 +16,7 @@ import torch
 from eval_fixtures import fixture_episodes, fixture_library
 
 from mapless.agent.evaluation import AdaptiveModelAgent, ModelAgent, OracleAgent
+from mapless.errors import MaplessError
 from mapless.evaluate.metrics import aggregate
 from mapless.evaluate.runner import (
     AgentSpec,
@@ -60,6 +61,11 @@ def test_oracle_scores_perfectly(episodes):
     assert [r.first_seen for r in run.results] == [r.length - 1 for r in run.results]
     assert all(r.ended_in_frame for r in run.results)
     assert all(r.stops_passed == 0 for r in run.results)  # it stops where it first could
+
+
+def test_no_episodes_is_an_error_naming_the_agent_not_an_index_error():
+    with pytest.raises(MaplessError, match="no episodes to evaluate oracle on"):
+        evaluate(AgentSpec(kind="oracle"), [], EvalSettings(workers=1), LIBRARY)
 
 
 @pytest.mark.slow

@@ -16,6 +16,7 @@ from mapless.checkpoint import load_file, training_clock, training_log
 from mapless.cli import main
 from mapless.episodes.protocols import PROTOCOLS
 from mapless.errors import MaplessError
+from mapless.evaluate.episode_sets import episodes_digest, load_episodes
 from mapless.evaluate.figures import MODEL_COLOURS, model_style, validation_figure
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
 from mapless.evaluate.selection import (
@@ -23,8 +24,6 @@ from mapless.evaluate.selection import (
     cache_file,
     cached_evaluate,
     candidates,
-    episodes_digest,
-    load_episodes,
     select_and_report,
 )
 from mapless.experiments.pipelines import training_curve

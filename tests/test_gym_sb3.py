@@ -64,6 +64,16 @@ def test_scenes_episodes_and_protocol_are_keyword_options():
         gym.make(mapless.ENV_ID, protocol="nope")
 
 
+def test_a_shared_library_must_count_success_as_the_protocol_does(library):
+    assert library.sim.visibility_distance == 1.0  # scene_library(): the standard rule
+    with pytest.raises(MaplessError, match=r"within 1.0 m, the reference protocol within 1.5 m"):
+        gym.make(mapless.ENV_ID, protocol="reference", library=library)
+    with pytest.raises(MaplessError, match="give library or cache_dir"):
+        gym.make(mapless.ENV_ID, library=library, cache_dir="elsewhere")
+    same = gym.make(mapless.ENV_ID, protocol="paper", library=library).unwrapped  # the paper's rule is 1.0 m
+    assert same.library is library
+
+
 def test_a_seeded_reset_restarts_the_episode_stream(library):
     env = gym.make(mapless.ENV_ID, scenes=SCENES, library=library)
     first = [env.reset(seed=5)[1]["mapless_episode"]] + [env.reset()[1]["mapless_episode"] for _ in range(3)]

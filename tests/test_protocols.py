@@ -14,6 +14,7 @@ from mapless.config import ConfigError
 from mapless.episodes import evalsets
 from mapless.episodes.protocols import PROTOCOLS, protocol_of_split, split_for
 from mapless.episodes.sampler import TrainingSampler
+from mapless.errors import UnknownNameError
 from mapless.experiments.config import ExperimentConfig, ExperimentEval, train_config
 from mapless.scenes.catalogue import ROOM_TYPES, SPLITS, scene_names, split_range_label
 from mapless.sim.build import build_scene_data
@@ -65,6 +66,9 @@ def test_the_reference_split_is_the_published_one():
     assert split_range_label("val") == "x21-x25"
     assert (split_for("reference", "val"), split_for("reference", "test")) == ("ref_val", "ref_test")
     assert (split_for("standard", "val"), split_for("standard", "test")) == ("val", "test")
+    assert split_for("standard", "paper") == "paper" == split_for("paper", "test")
+    with pytest.raises(UnknownNameError, match=r"unknown split 'tset'.*val, test, paper"):
+        split_for("standard", "tset")
     assert protocol_of_split("ref_test") is REFERENCE and protocol_of_split("paper") is PROTOCOLS["paper"]
 
 
@@ -255,7 +259,7 @@ def test_the_published_sets_map_exactly_onto_a_built_scene():
 
 
 def test_per_room_keeps_the_first_episodes_of_each_published_file():
-    from mapless.evaluate.selection import load_episodes
+    from mapless.evaluate.episode_sets import load_episodes
 
     episodes = load_episodes("ref_test", per_room=250, target_set="hoz22")
     assert collections.Counter(e.episode_id.split("/")[1] for e in episodes) == dict.fromkeys(ROOM_TYPES, 250)

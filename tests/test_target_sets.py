@@ -19,7 +19,7 @@ from mapless.cli import main
 from mapless.episodes import evalsets
 from mapless.episodes.sampler import TrainingSampler
 from mapless.errors import MaplessError
-from mapless.evaluate.selection import first_per_room
+from mapless.evaluate.episode_sets import first_per_room
 from mapless.experiments import load_experiment
 from mapless.experiments.evaluator import Evaluator
 from mapless.knowledge import parent_lists, parent_weights

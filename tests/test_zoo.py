@@ -395,6 +395,32 @@ def test_add_refuses_half_precision_weights_outside_the_float32_interval(
         )
 
 
+def test_add_refuses_a_bad_name_or_an_unwritable_zoo_before_evaluating(
+    added, fixture_scenes, tmp_path, monkeypatch, capsys
+):
+    def no_evaluation(*args, **kwargs):
+        raise AssertionError("evaluated before the entry's name and folder were checked")
+
+    monkeypatch.setattr("mapless.evaluate.runner.evaluate", no_evaluation)
+    bad = [
+        "zoo",
+        "add",
+        str(added["runs"]["a3c"]),
+        "--experiment",
+        "a/b",
+        "--episodes",
+        str(added["episodes"]),
+    ]
+    assert main(bad) == 2
+    assert "named <experiment>/<model>" in capsys.readouterr().err
+    taken = tmp_path / "a_file"
+    taken.write_text("not a zoo")
+    monkeypatch.setenv(zoo.ROOT_VARIABLE, str(taken))
+    assert _add(added, "a3c") == 2
+    error = capsys.readouterr().err
+    assert f"cannot add zoo:tiny-smoke/a3c: {taken} is not a folder" in error and "$MAPLESS_ZOO" in error
+
+
 def test_results_whose_episodes_the_manifest_does_not_match_are_refused(added, tmp_path):
     source = zoo.entry("zoo:tiny-smoke/a3c", added["zoo"]).folder
     copy = tmp_path / "zoo" / "tiny-smoke" / "a3c"

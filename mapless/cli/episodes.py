@@ -85,9 +85,11 @@ def _make(args: argparse.Namespace) -> int:
     base = sim_config_from(args)
     mismatches = 0
     libraries: dict[SimConfig, SceneLibrary] = {}
-    for split in args.splits.split(","):
-        if split not in evalsets.EVAL_SPLITS:
-            raise MaplessError(f"no evaluation split {split!r}; choose from {evalsets.EVAL_SPLITS}")
+    splits = args.splits.split(",")
+    unknown = [split for split in splits if split not in evalsets.EVAL_SPLITS]
+    if unknown:  # before any set is made: one bad name among several writes none
+        raise MaplessError(f"no evaluation split {unknown[0]!r}; choose from {evalsets.EVAL_SPLITS}")
+    for split in splits:
         config = protocol_of_split(split).sim(base)
         library = libraries.setdefault(config, SceneLibrary.builtin(config, args.cache_dir))
         if evalsets.is_published(split, args.target_set) and not args.layouts:
@@ -111,17 +113,8 @@ def _make(args: argparse.Namespace) -> int:
     return 1 if mismatches else 0
 
 
-def _load(source: str, target_set: str) -> tuple[list, dict]:
-    path = Path(source)
-    if not path.exists():
-        if source not in evalsets.EVAL_SPLITS:
-            raise MaplessError(f"{source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}")
-        path = evalsets.builtin_path(source, target_set)
-    return evalsets.load(path)
-
-
 def _show(args: argparse.Namespace) -> int:
-    episodes, header = _load(args.source, args.target_set)
+    episodes, header = evalsets.load(evalsets.source_path(args.source, args.target_set))
     print(
         f"{len(episodes)} episodes, split {header['split']} ({header['scenes']}), seed {header.get('seed')}"
     )
@@ -138,6 +131,8 @@ def _show(args: argparse.Namespace) -> int:
     if args.index is not None:
         if args.out is None:
             raise MaplessError("--index needs --out PNG")
+        if not 0 <= args.index < len(episodes):
+            raise MaplessError(f"--index {args.index}: the set has episodes 0 to {len(episodes) - 1}")
         _draw(episodes[args.index], args)
     return 0
 

@@ -4,14 +4,13 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import shlex
 import sys
 from pathlib import Path
 
 from mapless.cli.common import add_cache_argument, add_command, positive_int, seed_int
-from mapless.episodes.protocols import PROTOCOLS, Protocol, get_protocol, split_for
+from mapless.episodes.protocols import PROTOCOLS, SPLIT_ROLES, Protocol, get_protocol, split_for
 from mapless.errors import MaplessError
 from mapless.experiments.config import BUDGETS, EXPERIMENTS
 
@@ -32,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     ev.add_argument(
         "--split",
-        choices=("val", "test", "paper"),
+        choices=SPLIT_ROLES,
         default="test",
         help="the protocol's fixed episode set: val (x21-x25 under the standard protocol), test "
         "(x26-x30) or paper (x21-x30, the paper protocol)",
@@ -210,6 +209,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from mapless.evaluate.episode_sets import load_episodes
     from mapless.evaluate.metrics import aggregate
     from mapless.evaluate.report import (
         details_table,
@@ -219,7 +219,7 @@ def _eval(args: argparse.Namespace) -> int:
         write_report_files,
     )
     from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-    from mapless.evaluate.selection import evaluate_run, load_episodes
+    from mapless.evaluate.selection import SELECTION_AS_TRAINED, evaluate_run
     from mapless.files import unwritable
 
     path = Path(args.model)
@@ -237,13 +237,10 @@ def _eval(args: argparse.Namespace) -> int:
             "--select chooses a checkpoint on val, so it reports on --split test (or paper); "
             "the val scores of every checkpoint are in the selection table it prints"
         )
-    if args.select and (not args.adapt or args.inner_lr is not None):
-        raise MaplessError(
-            "selection scores each checkpoint as trained; --no-adapt and --inner-lr evaluate one model "
-            "file (or a run's final model) without --select"
-        )
+    if args.select and (not args.adapt or args.inner_lr is not None):  # before any episode loads
+        raise MaplessError(SELECTION_AS_TRAINED)
     protocol = _protocol(args)
-    eval_split = split_for(protocol.name, args.split) if args.split != "paper" else "paper"
+    eval_split = split_for(protocol.name, args.split)
     library = LibrarySpec(offline_dir=str(args.offline_dir) if args.offline_dir else None)
     target_set = protocol.target_set  # an untrained baseline is scored on the protocol's own sets
     trained_rule = None
@@ -263,21 +260,21 @@ def _eval(args: argparse.Namespace) -> int:
             label = shipped.name
             out = args.out or Path("reports") / "eval" / "zoo" / shipped.experiment / shipped.model
     elif args.model in ("random", "oracle"):
+        if not args.adapt or args.inner_lr is not None:
+            raise MaplessError("--no-adapt and --inner-lr are for a trained adaptive model")
         label = args.model
         baseline = AgentSpec(kind="oracle") if args.model == "oracle" else AgentSpec(model={"name": "random"})
         out = args.out or Path("reports") / "eval" / label
     else:
         raise MaplessError(f"{args.model!r} is neither a run folder, a model file, nor 'random' / 'oracle'")
+    if args.select and not path.is_dir():  # before the episodes are loaded (a .pkl: mapped)
+        raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
     # The report is named after the episodes it holds: an episode file's, else the protocol's split.
     name = _set_name(args.episodes) if args.episodes else eval_split
     problem = unwritable(out, [f"{name}.json", f"{name}.md"])
     if problem is not None:  # before the evaluation, whose results would be lost
         raise MaplessError(f"--out {out}: {problem}; nothing was evaluated")
-    # The protocol's success rule, whatever rule the model was trained under (it sees the same
-    # observations under both; only success, Done and the optimal lengths change).
-    library = dataclasses.replace(library, sim=protocol.sim(library.sim))
-    if args.cache_dir is not None:
-        library = dataclasses.replace(library, cache_dir=str(args.cache_dir))
+    library = library.under(protocol, args.cache_dir)
     meta: dict = {"split": name, "protocol": protocol.name}
     sets = {"per_room": args.per_room, "library": library, "target_set": target_set}
     if args.episodes is not None and args.episodes.suffix == ".pkl":
@@ -287,11 +284,7 @@ def _eval(args: argparse.Namespace) -> int:
     report_name = args.episodes.name if args.episodes else None
     untrained = _untrained_targets(episodes, target_set, path.exists(), meta)
     rule = _rule(protocol, library, trained_rule)
-    if args.select and not path.is_dir():
-        raise MaplessError("--select needs a run folder (it compares the run's checkpoints)")
     if baseline is not None:
-        if not args.adapt or args.inner_lr is not None:
-            raise MaplessError("--no-adapt and --inner-lr are for a trained adaptive model")
         run, selection, model_file = evaluate(baseline, episodes, settings, library), None, None
     else:  # a trained run, or one model file of it
         select_eps = None
@@ -425,7 +418,7 @@ def _untrained_targets(episodes: list, target_set: str, trained: bool, meta: dic
 def _published_episodes(path: Path, library, per_room: int | None, meta: dict) -> list:
     """A SAVN/MJOLNIR/HOZ pickle mapped onto the evaluation scenes; the mapping report goes to stderr
     and into the record."""
-    from mapless.evaluate.selection import first_per_room
+    from mapless.evaluate.episode_sets import first_per_room
     from mapless.offline.episodes import import_episode_file
 
     scenes = library.build()

@@ -330,13 +330,11 @@ def _export_episodes(args: argparse.Namespace) -> int:
         # The visible-object maps follow the success rule the file was made under, if it is a protocol's.
         rules = [base, *(p.sim(base) for p in PROTOCOLS.values())]
         config = next((c for c in rules if fingerprint(c) == header["sim_fingerprint"]), base)
-    elif args.source in evalsets.EVAL_SPLITS:
+    else:
         split = args.source
-        path = evalsets.builtin_path(split, args.target_set)
+        path = evalsets.source_path(split, args.target_set)
         episodes = evalsets.load(path)[0] if path.exists() else None
         config = protocol_of_split(split).sim(base)
-    else:
-        raise MaplessError(f"{args.source!r} is neither an episode file nor one of {evalsets.EVAL_SPLITS}")
     library = SceneLibrary.builtin(config, args.cache_dir)
     if episodes is None:
         print(

@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 from mapless.cli.common import add_cache_argument, add_command, positive_int, seed_int
-from mapless.episodes.protocols import PROTOCOLS, split_for
+from mapless.episodes.protocols import PROTOCOLS, SPLIT_ROLES, get_protocol, split_for
 from mapless.errors import MaplessError
 
 
@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add.add_argument(
         "--split",
-        choices=("val", "test", "paper"),
+        choices=SPLIT_ROLES,
         default="test",
         help="the protocol's episode set the results are on (as `mapless eval --split`)",
     )
@@ -123,14 +123,15 @@ def add_entry(args: argparse.Namespace) -> int:
         load_file,
         resolve_model_file,
     )
-    from mapless.evaluate.runner import AgentSpec, EvalSettings, evaluate
-    from mapless.evaluate.selection import load_episodes
+    from mapless.evaluate.episode_sets import load_episodes
+    from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
     from mapless.evaluate.zoo import (
         half_precision,
         half_precision_check,
         key_mismatch,
         result_keys,
         set_keys,
+        writable_entry,
         write_entry,
     )
     from mapless.experiments.config import BUDGETS
@@ -144,8 +145,11 @@ def add_entry(args: argparse.Namespace) -> int:
     model_file = recorded.model_file if recorded and recorded.model_file else resolve_model_file(run_dir)
     payload = load_file(model_file)
     cfg = stored_train_config(payload["config"])
-    library, protocol = run_library(cfg, args.protocol, args.cache_dir)
-    split = args.split if args.split == "paper" else split_for(protocol.name, args.split)
+    name = (args.model or cfg.model.name).replace(":", ".")
+    writable_entry(args.experiment, name, with_weights=True)  # before two evaluations are spent on it
+    protocol = get_protocol(args.protocol)
+    library = LibrarySpec.for_env(cfg.env).under(protocol, args.cache_dir)
+    split = split_for(protocol.name, args.split)
     episodes = load_episodes(
         split, args.episodes, per_room=args.per_room, library=library, target_set=cfg.env.target_set
     )
@@ -205,7 +209,6 @@ def add_entry(args: argparse.Namespace) -> int:
         "eval_settings": {"seed": settings.seed, "greedy": settings.greedy, "bf16": settings.bf16},
         "half_precision": check,
     }
-    name = (args.model or cfg.model.name).replace(":", ".")
     entry = write_entry(args.experiment, name, half, [full], episodes, manifest)
     print(
         f"added {entry.name}: SR {100 * check['float32_sr']:.1f} % (float32), "
@@ -217,7 +220,7 @@ def add_entry(args: argparse.Namespace) -> int:
 def add_results(args: argparse.Namespace) -> int:
     """An experiment report's rows as results-only zoo entries (:func:`report_rows`)."""
     from mapless.evaluate.report import read_json
-    from mapless.evaluate.zoo import write_entry
+    from mapless.evaluate.zoo import writable_entry, write_entry
 
     try:
         report = read_json(args.report)
@@ -230,6 +233,8 @@ def add_results(args: argparse.Namespace) -> int:
     if args.cache_dir is not None:  # where the report's episodes are rebuilt from, as reproduce reads it
         os.environ["MAPLESS_CACHE"] = str(args.cache_dir)
     wanted = args.models.split(",") if args.models else None
+    for model in wanted or [str(r.get("model")) for r in report["models"]]:
+        writable_entry(args.experiment, model.replace(":", "."), with_weights=False)
     for model, (results, episodes, manifest) in report_rows(report, args.report, wanted).items():
         entry = write_entry(args.experiment, model.replace(":", "."), None, results, episodes, manifest)
         sr = entry.manifest["success"]["mean"]
@@ -297,33 +302,13 @@ def _chosen(run: dict) -> dict:
     }
 
 
-def run_library(cfg, protocol_name: str, cache_dir: Path | None = None):
-    """The scenes a trained run is evaluated on under a protocol (its success rule), as ``mapless
-    eval`` evaluates it; returns ``(library, protocol)``."""
-    from mapless.episodes.protocols import get_protocol
-    from mapless.evaluate.runner import LibrarySpec
-
-    protocol = get_protocol(protocol_name)
-    library = LibrarySpec.for_env(cfg.env)
-    library = dataclasses.replace(library, sim=protocol.sim(library.sim))
-    if cache_dir is not None:
-        library = dataclasses.replace(library, cache_dir=str(cache_dir))
-    return library, protocol
-
-
 def _recorded(spec: str, run_dir: Path) -> Recorded:
     """The model file, results and settings a result file (an evaluation cache, a `mapless eval`
     record, or an experiment report's model) records for ``run_dir``."""
-    from mapless.evaluate.report import read_json, read_results
+    from mapless.evaluate.report import result_record, results_of
 
-    _, per_seed = read_results(spec)
-    path = Path(spec)
-    if not path.is_file() and ":" in spec:
-        head, _, model = spec.rpartition(":")
-        path = Path(head)
-        data = next(r for r in read_json(path)["models"] if r.get("model") == model)
-    else:
-        data = read_json(path)
+    path, data = result_record(spec)
+    _, per_seed = results_of(path, data)
     settings, seed = {}, 0
     if "key" in data:  # an evaluation cache: one model file on one episode set
         choice = data["key"].get("spec", {}).get("checkpoint")
@@ -379,14 +364,15 @@ def _run_on_entry(run_dir: Path, entry) -> tuple[str, list]:
     """A run's final model (or latest snapshot) on a zoo entry's episodes, under its protocol and
     action-sampling settings; cached in RUN/eval/ as other evaluations are."""
     from mapless.checkpoint import load_file, resolve_model_file
-    from mapless.evaluate.runner import AgentSpec, EvalSettings
-    from mapless.evaluate.selection import cache_file, cached_evaluate, episodes_digest
+    from mapless.evaluate.episode_sets import episodes_digest
+    from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec
+    from mapless.evaluate.selection import cache_file, cached_evaluate
     from mapless.train.config import stored_train_config
 
     model_file = resolve_model_file(run_dir)
     cfg = stored_train_config(load_file(model_file)["config"])
     manifest = entry.manifest
-    library, _ = run_library(cfg, manifest["protocol"])
+    library = LibrarySpec.for_env(cfg.env).under(get_protocol(manifest["protocol"]))
     episodes = entry.episodes()
     given = manifest.get("eval_settings", {})
     settings = EvalSettings(

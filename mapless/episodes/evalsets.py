@@ -283,7 +283,19 @@ def _data_path(name: str) -> Path:
     return Path(str(resources.files("mapless.data").joinpath(name)))
 
 
+def source_path(source: str, target_set: str = "mjolnir22") -> Path:
+    """What a command's episode source names: an episode file, else the built-in set of a split
+    (of ``target_set``); an error naming both readings when it is neither."""
+    path = Path(source)
+    if path.exists():
+        return path
+    if source not in EVAL_SPLITS:
+        raise MaplessError(f"{source!r} is neither an episode file nor one of {EVAL_SPLITS}")
+    return builtin_path(source, target_set)
+
+
 def builtin_path(split: str, target_set: str = "mjolnir22", layouts: str | None = None) -> Path:
+    """The shipped evaluation set of ``split`` (and of ``layouts``' arrangements) of ``target_set``."""
     if split not in EVAL_SPLITS:
         raise MaplessError(f"no built-in episode set for split {split!r}; choose one of {EVAL_SPLITS}")
     name = f"{split}_{layouts_label(layouts)}" if layouts else split

@@ -15,7 +15,9 @@ scene), so a fresh machine starts without a ``mapless scenes build``. The keywor
 * ``protocol``: ``standard``, ``paper`` or ``reference`` (:mod:`mapless.episodes.protocols`): the
   success rule, and the target set of sampled episodes unless ``target_set`` names one;
 * ``render_mode="rgb_array"``: top-down frames (:meth:`NavEnv.render`);
-* ``library``: a :class:`SceneLibrary` to share between environments (a vector environment's copies).
+* ``library``: a :class:`SceneLibrary` to share between environments (a vector environment's copies):
+  built under ``protocol``'s success rule (an error otherwise, where the library says its settings),
+  and in place of ``cache_dir``.
 """
 
 from __future__ import annotations
@@ -73,6 +75,17 @@ class ObjectNavEnv(NavEnv):
     ):
         chosen = get_protocol(protocol)
         target_set = target_set or chosen.target_set
+        if library is not None:
+            if cache_dir is not None:
+                raise MaplessError(
+                    "cache_dir is where the env builds its own library; give library or cache_dir"
+                )
+            if library.sim is not None and library.sim != chosen.sim(library.sim):
+                raise MaplessError(
+                    f"the library's scenes count success within {library.sim.visibility_distance} m, the "
+                    f"{chosen.name} protocol within {chosen.sim(library.sim).visibility_distance} m: "
+                    f"build it with scene_library({chosen.name!r})"
+                )
         library = library or scene_library(protocol, cache_dir)
         sampler = None
         if isinstance(episodes, str):

@@ -96,8 +96,16 @@ def protocol_of_split(split: str) -> Protocol:
     )
 
 
+#: The episode sets a command's ``--split`` names: the protocol's selection and report sets, and the
+#: paper protocol's one set (x21-x30), which selects and reports alike.
+SPLIT_ROLES = ("val", "test", "paper")
+
+
 def split_for(protocol: str, role: str) -> str:
-    """The evaluation-set split that ``role`` (``val``: selection, ``test``: report) uses under
-    ``protocol``; ``mapless eval --protocol reference --split test`` reads ``ref_test``."""
+    """The evaluation-set split that ``role`` (``val``: selection, ``test``: report, ``paper``: the
+    paper protocol's set) uses under ``protocol``; ``mapless eval --protocol reference --split test``
+    reads ``ref_test``."""
     p = get_protocol(protocol)
-    return {"val": p.select_split, "test": p.report_split}[role]
+    if role not in SPLIT_ROLES:
+        raise UnknownNameError("split", role, SPLIT_ROLES)
+    return {"val": p.select_split, "test": p.report_split, "paper": "paper"}[role]

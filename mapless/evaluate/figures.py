@@ -242,9 +242,8 @@ def trajectory_gif(
     path: Path,
     sim: SimConfig | None = None,
     size: int = 126,
-    every: int = 1,
 ) -> None:
-    """Egocentric semantic views along a trajectory, as an animated GIF (Pillow)."""
+    """Egocentric semantic views along a trajectory, one frame a step, as an animated GIF (Pillow)."""
     from PIL import Image
 
     from mapless.scenes.layout import load_scene
@@ -253,7 +252,7 @@ def trajectory_gif(
     sim = sim or SimConfig()
     scene = load_scene(result.scene)
     data = library[result.scene]
-    poses = (result.start_pose, *result.poses)[::every]
+    poses = (result.start_pose, *result.poses)
     frames = [Image.fromarray(egocentric_view(scene, sim, *data.pose_tuple(p), size)) for p in poses]
     path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=250, loop=0)

@@ -182,6 +182,12 @@ def read_results(spec: str | Path) -> tuple[str, list[list[EpisodeResult]]]:
     """Every seed's episodes of one result file, and a label: ``FILE`` is an evaluation's cache
     (``RUN/eval/*.json``: one seed) or a model record (``mapless eval``'s ``SPLIT.json``: its
     seeds); ``FILE:MODEL`` picks a model's record from an experiment report (``table1.json``)."""
+    return results_of(*result_record(spec))
+
+
+def result_record(spec: str | Path) -> tuple[Path, dict]:
+    """The file and the one model's record that ``spec`` names (as :func:`read_results` reads it):
+    an evaluation's cache, a model record, or ``FILE:MODEL``'s record of an experiment report."""
     text = str(spec)
     path, model = Path(text), None
     if not path.is_file() and ":" in text:
@@ -202,6 +208,11 @@ def read_results(spec: str | Path) -> tuple[str, list[list[EpisodeResult]]]:
         data = data["models"][names.index(model)]
     elif model is not None:
         raise MaplessError(f"{path} holds one model's results; leave out ':{model}'")
+    return path, data
+
+
+def results_of(path: Path, data: dict) -> tuple[str, list[list[EpisodeResult]]]:
+    """A label and every seed's episodes of the record ``data`` of the file ``path``."""
     episodes = data.get("episodes")
     if not isinstance(episodes, list) or not episodes:
         raise MaplessError(f"{path}: no 'episodes' (a mapless evaluation, `mapless eval` record or report)")

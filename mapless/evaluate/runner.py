@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +47,10 @@ from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
 from mapless.sim.task import TargetFields, max_steps_for
 from mapless.sim.vector import BatchedNavEnv, BatchStep
+
+if TYPE_CHECKING:
+    from mapless.episodes.protocols import Protocol
+    from mapless.models import NavModel
 
 
 # -- agent and library specifications (picklable, rebuilt inside each worker) ---------------------
@@ -79,13 +83,13 @@ class AgentSpec:
             return OracleAgent(batch_size)
         if self.kind == "factory":
             return _import(self.factory)(batch_size, bf16)
-        model = load_model(self)
+        model = _model_of(self)
         if model.adaptive and self.adapt:
             return AdaptiveModelAgent(model, batch_size)
         return ModelAgent(model, batch_size, bf16)
 
 
-def load_model(spec: AgentSpec):
+def _model_of(spec: AgentSpec) -> NavModel:
     """The model of a spec: from a training checkpoint when given, else freshly initialised."""
     import torch
 
@@ -126,6 +130,13 @@ class LibrarySpec:
         run's offline root, if any)."""
         offline = offline_dir or env.offline_dir
         return cls(sim=env.sim, cache_dir=env.cache_dir, offline_dir=str(offline) if offline else None)
+
+    def under(self, protocol: Protocol, cache_dir: str | Path | None = None) -> LibrarySpec:
+        """The same scenes under ``protocol``'s success rule, whatever rule they were trained under
+        (a model sees the same observations under both; only success, Done and the optimal lengths
+        change), cached in ``cache_dir`` if given."""
+        spec = dataclasses.replace(self, sim=protocol.sim(self.sim))
+        return spec if cache_dir is None else dataclasses.replace(spec, cache_dir=str(cache_dir))
 
     @property
     def sim_fingerprint(self) -> str | None:
@@ -410,13 +421,14 @@ def evaluate(
     episodes: Sequence[Episode],
     settings: EvalSettings | None = None,
     library: LibrarySpec | None = None,
-    progress: Callable[[str], None] | None = None,
 ) -> EvalRun:
     """Evaluate ``agent`` on ``episodes`` with ``settings.workers`` spawn workers; results are in
     episode order and identical for any worker count."""
     settings = settings or EvalSettings()
     library = library or LibrarySpec()
     episodes = list(episodes)
+    if not episodes:
+        raise MaplessError(f"no episodes to evaluate {agent.label} on")
     scenes = sorted({e.scene for e in episodes})
     library.build().prepare(scenes)  # a bar only when some scene has to be built
     workers = max(1, min(settings.workers, len(scenes)))
@@ -434,7 +446,5 @@ def evaluate(
             out = list(pool.map(_worker, jobs))
     seconds = time.perf_counter() - start
     results = sorted((EpisodeResult.from_dict(d) for part, _, _ in out for d in part), key=lambda r: r.index)
-    if progress:
-        progress(f"{agent.label}: {len(results)} episodes in {seconds:.1f} s")
     steps = sum(r.length for r in results)
     return EvalRun(results, seconds, steps, [rss for _, rss, _ in out], max(t for _, _, t in out))

@@ -10,7 +10,6 @@ episodes, an optimistic estimate; every report made with it says so.
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -19,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from mapless.checkpoint import FINAL_MODEL_FILE, load_file, mixed_runs, snapshots, training_clock
-from mapless.episodes import evalsets
-from mapless.episodes.protocols import PROTOCOLS
+from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
+from mapless.evaluate.episode_sets import episodes_digest
 from mapless.evaluate.metrics import EpisodeResult, aggregate, main_metrics
 from mapless.evaluate.report import read_json, write_json
 from mapless.evaluate.runner import (
@@ -33,69 +32,8 @@ from mapless.evaluate.runner import (
     lacks_sightings,
     with_sightings,
 )
-from mapless.scenes.catalogue import ROOM_TYPES, room_type_of
 from mapless.sim.episode import Episode
 from mapless.sim.library import SceneLibrary
-
-
-def load_episodes(
-    split: str,
-    episodes_file: str | Path | None = None,
-    per_room: int | None = None,
-    rooms: Sequence[str] = ROOM_TYPES,
-    library: LibrarySpec | None = None,
-    target_set: str = "mjolnir22",
-    layouts: str | None = None,
-) -> list[Episode]:
-    """The fixed episodes of ``split`` (:func:`mapless.episodes.evalsets.set_path`: ``episodes_file``,
-    else the built-in set of the training ``target_set``, hoz22's reference sets the published ones;
-    with ``layouts`` the layout-shift set, made on the spot when not shipped), keeping the first
-    ``per_room`` of each room type in ``rooms``: a prefix of the full set, so small budgets evaluate a
-    subset of the very episodes the full budget uses (the published sets are in their files' order,
-    which is shuffled: HOZ evaluates the first 250 of each room type).
-
-    With a built-in simulator ``library``, a file made under other simulator settings is refused: its
-    shortest paths (SPL, the L>=5 split) and its "target not yet visible" starts would be wrong there.
-    """
-    path = evalsets.set_path(split, target_set, layouts, episodes_file)
-    if layouts and not episodes_file and not path.exists() and library is not None:
-        # A layout-shift set not shipped: made here, as `mapless episodes make --layouts` makes it (its
-        # first per_room episodes of each room type are those of the full set: each room draws alone).
-        made = evalsets.make_eval_set(
-            library.build(), split, target_set, per_room or 250, layouts=layouts, room_types=tuple(rooms)
-        )
-        return first_per_room(made, per_room, rooms, source=f"the {split} set under layouts {layouts}")
-    if not path.exists():
-        raise MaplessError(
-            f"no episode file {path}; make the fixed sets with "
-            f"`mapless episodes make --target-set {target_set}` or pass --episodes FILE"
-        )
-    episodes, _ = evalsets.load(path, library.sim_fingerprint if library else None)
-    return first_per_room(episodes, per_room, rooms, source=str(path))
-
-
-def first_per_room(
-    episodes: Sequence[Episode],
-    per_room: int | None,
-    rooms: Sequence[str] = ROOM_TYPES,
-    source: str = "the set",
-) -> list[Episode]:
-    """The first ``per_room`` episodes of each room type in ``rooms`` (all with None), in order."""
-    kept: list[Episode] = []
-    count = dict.fromkeys(rooms, 0)
-    for episode in episodes:
-        room = room_type_of(episode.scene)
-        if room in count and (per_room is None or count[room] < per_room):
-            kept.append(episode)
-            count[room] += 1
-    if not kept:
-        raise MaplessError(f"{source} has no episodes of room types {list(rooms)}")
-    return kept
-
-
-def episodes_digest(episodes: Sequence[Episode]) -> str:
-    text = json.dumps([e.to_dict() for e in episodes], sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def cache_file(directory: Path, name: str, digest: str) -> Path:
@@ -237,9 +175,7 @@ def select_and_report(
     in the label and the cache. ``within_minutes``: only the snapshots of the first N minutes of
     training (by the run's log), as if the run had stopped there. Per-checkpoint results are cached
     under ``run_dir/eval/``."""
-    if protocol not in PROTOCOLS:
-        raise MaplessError(f"unknown protocol {protocol!r}; choose one of {list(PROTOCOLS)}")
-    p = PROTOCOLS[protocol]
+    p = get_protocol(protocol)
     select_split, report_split, label = p.select_split, p.report_split, p.label
     if report_name and protocol == "paper":
         select_split = report_split = report_name
@@ -297,6 +233,13 @@ class RunEvaluation:
     selection: Selection | None = None
 
 
+#: Why selection takes no test-time setting: it compares checkpoints as they were trained.
+SELECTION_AS_TRAINED = (
+    "selection scores each checkpoint as trained; --no-adapt and --inner-lr evaluate one model file "
+    "(or a run's final model) without --select"
+)
+
+
 def evaluate_run(
     path: str | Path,
     report_episodes: list[Episode],
@@ -317,10 +260,7 @@ def evaluate_run(
     ``report_episodes``, adapted at test time or not (``adapt``) at ``inner_lr`` if given
     (:class:`~mapless.evaluate.runner.AgentSpec`); selection scores checkpoints as they were trained."""
     if select_episodes is not None and (not adapt or inner_lr is not None):
-        raise MaplessError(
-            "selection scores each checkpoint as trained; evaluate one model file without test-time "
-            "adaptation or at another inner rate, without selecting"
-        )
+        raise MaplessError(SELECTION_AS_TRAINED)
     if select_episodes is not None:
         sel = select_and_report(
             path, select_episodes, report_episodes, settings, library, protocol, progress, report_name,

@@ -25,10 +25,10 @@ import torch
 import mapless.data
 from mapless.checkpoint import atomic_save
 from mapless.errors import MaplessError
+from mapless.evaluate.episode_sets import episodes_digest
 from mapless.evaluate.metrics import EpisodeResult, aggregate
-from mapless.evaluate.selection import episodes_digest
 from mapless.evaluate.stats import seed_estimates
-from mapless.files import write_bytes
+from mapless.files import unwritable, write_bytes
 from mapless.sim.episode import Episode
 
 PREFIX = "zoo:"
@@ -195,6 +195,26 @@ def half_precision_check(full: Sequence[EpisodeResult], half: Sequence[EpisodeRe
     return check
 
 
+def writable_entry(
+    experiment: str, model: str, *, with_weights: bool, root: str | Path | None = None
+) -> Path:
+    """The folder the entry ``<experiment>/<model>`` would be written to; an error, before any
+    evaluation is spent on it, when the name is not one entry's, when a results-only entry would drop
+    shipped weights, or when the folder cannot be written (an installed package's zoo: set
+    $MAPLESS_ZOO)."""
+    if "/" in experiment or "/" in model or not experiment or not model:
+        raise ZooError(f"an entry is named <experiment>/<model>; got {experiment!r} and {model!r}")
+    folder = zoo_root(root) / experiment / model
+    if not with_weights and (folder / MODEL_FILE).is_file():
+        raise ZooError(
+            f"{PREFIX}{experiment}/{model} ships weights, which a results-only entry of that name would "
+            "drop; name the results another experiment (e.g. <experiment>-seeds); nothing was added"
+        )
+    if (why := unwritable(folder, (MODEL_FILE, RESULTS_FILE, MANIFEST_FILE))) is not None:
+        raise ZooError(f"cannot add {PREFIX}{experiment}/{model}: {why} (${ROOT_VARIABLE} names another zoo)")
+    return folder
+
+
 def write_entry(
     experiment: str,
     model: str,
@@ -208,18 +228,11 @@ def write_entry(
     results-only entry), each seed's results with their episodes (compact JSON, gzip without a
     timestamp, so the bytes depend on the content only) and the manifest, which gains the episode
     digest and SR/SPL with their intervals."""
-    if "/" in experiment or "/" in model or not experiment or not model:
-        raise ZooError(f"an entry is named <experiment>/<model>; got {experiment!r} and {model!r}")
+    folder = writable_entry(experiment, model, with_weights=payload is not None, root=root)
     keys = set_keys(episodes)
     for seed in results:
         if (mismatch := key_mismatch(result_keys(seed), keys)) is not None:
             raise ZooError(f"{experiment}/{model}: results not on the entry's episodes ({mismatch})")
-    folder = zoo_root(root) / experiment / model
-    if payload is None and (folder / MODEL_FILE).is_file():
-        raise ZooError(
-            f"{PREFIX}{experiment}/{model} ships weights, which a results-only entry of that name would "
-            "drop; name the results another experiment (e.g. <experiment>-seeds); nothing was added"
-        )
     folder.mkdir(parents=True, exist_ok=True)
     if payload is not None:
         atomic_save(payload, folder / MODEL_FILE)

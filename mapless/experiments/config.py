@@ -308,7 +308,7 @@ def load_experiment(
 
 
 #: The layer name of a run's keys taken from the experiment's ``train`` or ``per_model`` block: the
-#: source is the experiment layer that set the key there (:func:`print_run_sources`).
+#: source is the experiment layer that set the key there (:func:`mapless.experiments.sources.run_sources`).
 FROM_EXPERIMENT = "experiment:"
 
 

@@ -12,12 +12,14 @@ from pathlib import Path
 from mapless.episodes.evalsets import describe_untrained, set_path, untrained_targets
 from mapless.episodes.protocols import get_protocol
 from mapless.errors import MaplessError
+from mapless.evaluate.episode_sets import load_episodes
 from mapless.evaluate.metrics import EpisodeResult
 from mapless.evaluate.runner import AgentSpec, EvalSettings, LibrarySpec, evaluate
-from mapless.evaluate.selection import cached_evaluate, evaluate_run, load_episodes
+from mapless.evaluate.selection import cached_evaluate, evaluate_run
 from mapless.experiments.config import ExperimentConfig, train_config
 from mapless.scenes.categories import TARGET_SETS
 from mapless.sim.episode import Episode
+from mapless.train.config import TrainConfig
 
 
 def experiment_scenes(config: ExperimentConfig) -> tuple[LibrarySpec, str]:
@@ -122,7 +124,7 @@ class Evaluator:
         self,
         episodes: list[Episode],
         model: str,
-        train_cfg=None,
+        train_cfg: TrainConfig | None = None,
         checkpoint: str | None = None,
         cache: Path | None = None,
         adapt: bool = True,
@@ -132,11 +134,13 @@ class Evaluator:
         ``adapt``: test-time adaptation of an adaptive model (False: its θ_0, never adapted)."""
         if checkpoint is None:
             return evaluate(AgentSpec(model={"name": model}), episodes, self.settings, self.scenes).results
+        if train_cfg is None:
+            raise ValueError("a checkpoint is evaluated with its run's training config (train_cfg)")
         settings = dataclasses.replace(self.settings, category_set=train_cfg.model.category_set)
         spec, library = AgentSpec(checkpoint=checkpoint, adapt=adapt), self.library(train_cfg)
         return cached_evaluate(spec, episodes, settings, library, cache).results
 
-    def library(self, train_cfg) -> LibrarySpec:
+    def library(self, train_cfg: TrainConfig) -> LibrarySpec:
         """A run's scenes; they must be the experiment's, which its episode sets were checked against."""
         spec = LibrarySpec.for_env(train_cfg.env)
         if spec.sim_fingerprint != self.scenes.sim_fingerprint:
@@ -156,7 +160,7 @@ class Evaluator:
         return self._untrained[model]
 
     def trained(
-        self, run_dir: Path, train_cfg, within_minutes: float | None = None
+        self, run_dir: Path, train_cfg: TrainConfig, within_minutes: float | None = None
     ) -> tuple[list[EpisodeResult], dict]:
         """A trained run's report results: its checkpoint chosen on the selection episodes (among
         those of its first ``within_minutes`` of training), or its final model when the experiment

@@ -15,19 +15,18 @@ under ``eval/`` name their model files by path, so they are moved along with the
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import json
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from mapless.config import move_keys, read_mapping, to_dict
+from mapless.config import move_keys, read_mapping
 from mapless.errors import MaplessError
+from mapless.experiments.runs import config_hash, hashed_config
 from mapless.files import write_text
 from mapless.models.registry import model_class
-from mapless.train.config import LAYOUT_CHANGES, stored_train_config
+from mapless.train.config import LAYOUT_CHANGES, TrainConfig, stored_train_config
 
 #: ``<model>__<variant>__s<seed>__<hash>``, the name of an experiment's run folder.
 RUN_FOLDER = re.compile(r"^(?P<model>.+?)__(?P<variant>.+)__s(?P<seed>\d+)__(?P<hash>[0-9a-f]{8})$")
@@ -51,21 +50,16 @@ _LATER_KEYS: tuple[tuple[str, Callable[..., bool]], ...] = (
 )
 
 
-def _hash(data: dict) -> str:
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:8]
-
-
-def _laid_out_before(train_cfg, change: int) -> dict:
-    """What a run hash reads of ``train_cfg`` (no progress bar, no logger), in the layout from before
+def _laid_out_before(train_cfg: TrainConfig, change: int) -> dict:
+    """What a run hash reads of ``train_cfg`` (:func:`hashed_config`), in the layout from before
     ``LAYOUT_CHANGES[change]``: every later change's keys moved back, newest first."""
-    data = to_dict(dataclasses.replace(train_cfg, progress=False))
-    del data["logger"]
+    data = hashed_config(train_cfg)
     for _, moves in reversed(LAYOUT_CHANGES[change:]):
         data = move_keys(data, [(new, old) for old, new in moves])
     return data
 
 
-def old_run_hash(train_cfg) -> str:
+def old_run_hash(train_cfg: TrainConfig) -> str:
     """The first run-folder hash: the config in the layout before the ``a3c:`` and ``env.reward:``
     blocks, less the progress bar, the logger and the later keys that did not change the run."""
     data = _laid_out_before(train_cfg, 0)
@@ -73,14 +67,14 @@ def old_run_hash(train_cfg) -> str:
         if not changes_training(train_cfg):
             section, key = path.split(".")
             del data[section][key]
-    return _hash(data)
+    return config_hash(data)
 
 
-def earlier_run_hashes(train_cfg) -> list[str]:
+def earlier_run_hashes(train_cfg: TrainConfig) -> list[str]:
     """The folder hashes ``train_cfg``'s run had under every earlier rule, newest first: the config
     as laid out before each change of :data:`LAYOUT_CHANGES` since the first, then the first rule
     (:func:`old_run_hash`)."""
-    later = [_hash(_laid_out_before(train_cfg, c)) for c in range(len(LAYOUT_CHANGES) - 1, 0, -1)]
+    later = [config_hash(_laid_out_before(train_cfg, c)) for c in range(len(LAYOUT_CHANGES) - 1, 0, -1)]
     return [*later, old_run_hash(train_cfg)]
 
 

@@ -15,9 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from mapless.checkpoint import training_log
+from mapless.errors import MaplessError
+from mapless.evaluate.episode_sets import episodes_digest
 from mapless.evaluate.metrics import compared_metrics, same_actions
 from mapless.evaluate.report import ROOM_NAMES, difference_record, model_record
-from mapless.evaluate.selection import cache_file, episodes_digest
+from mapless.evaluate.selection import cache_file
 from mapless.evaluate.stats import seed_estimates
 from mapless.experiments.config import ROOM_ABBREV, ExperimentConfig, train_config
 from mapless.experiments.evaluator import EvaluateInLane, Evaluator, experiment_scenes
@@ -36,6 +38,7 @@ from mapless.experiments.records import (
     TrajectoryFigure,
 )
 from mapless.experiments.render import write_report
+from mapless.files import unwritable
 from mapless.models import MODELS
 from mapless.models.settings import reads
 from mapless.scenes.catalogue import ROOM_TYPES
@@ -317,9 +320,9 @@ def layout_shift_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:
     rows = {}
     for model in config.models:
         # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
-        rows[model, "default"] = Row(model)
+        rows[model, SHIFT_ROWS[0]] = Row(model)
         if model != "random":
-            rows[model, "variants"] = Row(model, "layouts", {"env": {"layouts": config.variant_layouts}})
+            rows[model, SHIFT_ROWS[1]] = Row(model, "layouts", {"env": {"layouts": config.variant_layouts}})
     return rows
 
 
@@ -359,9 +362,9 @@ def layout_shift(config: ExperimentConfig, log: Callable[[str], None], ev: Evalu
             meta_set = {"runs": meta, "trained_on": trained_on, "test_on": name}
             records.append(model_record(label, per_set[name], meta_set))
     variants = [
-        _comparison(model, results[model, "default"][name], results[model, "variants"][name], name)
+        _comparison(model, results[model, SHIFT_ROWS[0]][name], results[model, SHIFT_ROWS[1]][name], name)
         for model in config.models
-        if (model, "variants") in results
+        if (model, SHIFT_ROWS[1]) in results
         for name in SHIFT_SETS
     ]
     focus = config.focus
@@ -425,7 +428,11 @@ def reproduce(config: ExperimentConfig, reports_dir: Path = Path("reports"), log
     suffix = "" if config.eval.protocol == "standard" else f"-{config.eval.protocol}"
     out = Path(reports_dir) / f"{config.experiment}{suffix}"
     start = time.perf_counter()
-    # The episode sets load and are checked before any training: a bad file fails now, not hours on.
+    # The report folder and the episode sets are checked before any training: a path that cannot be
+    # written or a bad file fails now, not hours on.
+    problem = unwritable(out, [f"{config.experiment}.json", f"{config.experiment}.md"])
+    if problem is not None:
+        raise MaplessError(f"cannot write the report in {out}: {problem} (--reports names another folder)")
     ev = Evaluator(config, log)
     launcher = launcher or LocalLauncher()
     if isinstance(launcher, LocalLauncher) and launcher.evaluate_early is None:

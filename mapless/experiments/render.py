@@ -390,7 +390,7 @@ def figures45(experiment: str, record: Figures45, out: Path, command: str) -> Re
         lines += [f"## {name}: {caption}", "", f"{episode.scene}, target {episode.target}, parents {', '.join(parents) or '–'}.", "",
                   f"![{name}]({name}.png)", ""]  # fmt: skip
         if gif and name == "figure4_trajectories":
-            trajectory_gif(episode, library, out / f"{name}_{focus}.gif", every=1)
+            trajectory_gif(episode, library, out / f"{name}_{focus}.gif")
             lines += [f"Egocentric views of {focus}: `{name}_{focus}.gif`.", ""]
     return {"experiment": experiment, "figures": figures}, lines
 

@@ -14,20 +14,31 @@ from pathlib import Path
 from mapless.config import to_dict
 from mapless.experiments.config import ExperimentConfig
 from mapless.models.registry import model_folder_name
+from mapless.train.config import TrainConfig
 
 
-def run_dir_for(config: ExperimentConfig, train_cfg, variant: str) -> Path:
+def run_dir_for(config: ExperimentConfig, train_cfg: TrainConfig, variant: str) -> Path:
     """``<runs_dir>/<model>__<variant>__s<seed>__<hash>``, the hash over what the run trains with
     (:func:`run_hash`), so experiments with an identical run share it."""
     model = model_folder_name(train_cfg.model.name)
     return Path(config.runs_dir) / f"{model}__{variant}__s{train_cfg.seed}__{run_hash(train_cfg)}"
 
 
-def run_hash(train_cfg) -> str:
+def run_hash(train_cfg: TrainConfig) -> str:
     """Eight hex digits of the SHA-256 of the training config as it is laid out, less what changes
     no run: the progress bar and where the records go (``logger``)."""
+    return config_hash(hashed_config(train_cfg))
+
+
+def hashed_config(train_cfg: TrainConfig) -> dict:
+    """What a run hash reads of ``train_cfg``: all of it but the progress bar and the logger."""
     data = to_dict(dataclasses.replace(train_cfg, progress=False))
     del data["logger"]
+    return data
+
+
+def config_hash(data: dict) -> str:
+    """Eight hex digits of the SHA-256 of a config mapping's JSON with sorted keys."""
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:8]
 
 
@@ -81,7 +92,7 @@ def _duration(seconds: float) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
 
 
-def train_run(train_cfg, run_dir: Path, log: Callable[[str], None]) -> float:
+def train_run(train_cfg: TrainConfig, run_dir: Path, log: Callable[[str], None]) -> float:
     """Train unless ``run_dir`` already holds a finished run (its final model); an interrupted run
     (a resumable checkpoint but no final model) is resumed. Returns the share of the run's episodes
     trained here: 0 for a reused run, 1 for one trained from the start."""

@@ -1,4 +1,5 @@
-"""Random observations that satisfy docs/guide/simulator.md, "Observations", for tests, smoke runs and benchmarks."""
+"""Random observations that satisfy docs/guide/simulator.md, "Observations": a batch to test a model
+with (its shapes, gradients, every form of its step) without building a scene."""
 
 from __future__ import annotations
 

@@ -14,16 +14,20 @@ from mapless.sim.scene_data import SceneData
 
 class SceneLibrary:
     """Loads scenes on first use through ``loader`` and keeps them (all of iTHOR fits in memory:
-    about 1 GB of uint8 feature maps for the 120 scenes)."""
+    about 1 GB of uint8 feature maps for the 120 scenes). ``sim``: the simulator settings its scenes
+    are built with, where known (the built-in library's), so that a user of the library can check
+    them against the success rule it expects."""
 
     def __init__(
         self,
         loader: Callable[[str], SceneData],
         preparer: Callable[[list[str], bool], object] | None = None,
+        sim: SimConfig | None = None,
     ):
         self._loader = loader
         self._preparer = preparer
         self._scenes: dict[str, SceneData] = {}
+        self.sim = sim
 
     @classmethod
     def builtin(cls, config: SimConfig | None = None, cache_dir: Path | None = None) -> SceneLibrary:
@@ -35,6 +39,7 @@ class SceneLibrary:
             lambda scenes, progress: build_many(
                 scenes, config, cache_dir, progress=progress, missing_only=True
             ),
+            sim=config,
         )
 
     def prepare(self, scenes: Sequence[str], progress: bool = True) -> None:

@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from mapless import checkpoint as ckpt
-from mapless.config import ConfigError, apply_overrides, read_mapping, save_config, to_dict
+from mapless.config import ConfigError, apply_overrides, leaves, read_mapping, save_config, to_dict
 from mapless.errors import MaplessError
 from mapless.files import unwritable
 from mapless.models import model_folder_name
@@ -58,15 +58,6 @@ def config_edits(run_dir: str | Path, resume: dict) -> list[str]:
     stored = resume["config"]
     if ckpt.identity_difference(edited, stored, ("", "")) is not None:
         return []  # another run's checkpoint, which the trainer refuses
-
-    def leaves(data: dict, prefix: str = "") -> dict:
-        out = {}
-        for key, value in data.items():
-            out.update(
-                leaves(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value}
-            )
-        return out
-
     mine, theirs = leaves(edited), leaves(stored)
     return [
         f"{k}: {mine[k]!r} in config.yaml, {theirs.get(k)!r} in the checkpoint"
