@@ -72,5 +72,6 @@ def first_per_room(
 
 
 def episodes_digest(episodes: Sequence[Episode]) -> str:
+    """Sixteen hex digits naming an episode set by its content, in order (caches, zoo manifests)."""
     text = json.dumps([e.to_dict() for e in episodes], sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
