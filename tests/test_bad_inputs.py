@@ -324,6 +324,13 @@ def test_a_model_with_nan_weights_is_refused_before_evaluation(tmp_path, capsys,
         resume_config(run)
 
 
+def test_episodes_make_checks_every_split_before_it_writes_one(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(evalsets, "make_eval_set", lambda *a, **k: pytest.fail("made a set"))
+    err = error_of(["episodes", "make", "--splits", "val,tset", "--out", str(tmp_path)], capsys)
+    assert "no evaluation split 'tset'" in err
+    assert not list(tmp_path.iterdir())
+
+
 def test_eval_options_that_do_not_apply_are_refused_before_the_episodes_load(capsys, monkeypatch):
     monkeypatch.setattr("mapless.evaluate.episode_sets.load_episodes", lambda *a, **k: pytest.fail("loaded"))
     err = error_of(["eval", "random", "--select"], capsys)
