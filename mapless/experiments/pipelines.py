@@ -310,7 +310,7 @@ def figures45(config: ExperimentConfig, log: Callable[[str], None], ev: Evaluato
 
 
 #: The layout-shift experiment's training rows and test sets.
-SHIFT_ROWS = ("default", "variants")
+DEFAULT_ROW, VARIANTS_ROW = SHIFT_ROWS = ("default", "variants")
 SHIFT_SETS = ("default", "shifted")
 
 
@@ -320,9 +320,9 @@ def layout_shift_rows(config: ExperimentConfig) -> dict[tuple[str, str], Row]:
     rows = {}
     for model in config.models:
         # The default row's runs are Table 1's ("all"), so that a finished Table 1 is reused.
-        rows[model, SHIFT_ROWS[0]] = Row(model)
+        rows[model, DEFAULT_ROW] = Row(model)
         if model != "random":
-            rows[model, SHIFT_ROWS[1]] = Row(model, "layouts", {"env": {"layouts": config.variant_layouts}})
+            rows[model, VARIANTS_ROW] = Row(model, "layouts", {"env": {"layouts": config.variant_layouts}})
     return rows
 
 
@@ -362,9 +362,9 @@ def layout_shift(config: ExperimentConfig, log: Callable[[str], None], ev: Evalu
             meta_set = {"runs": meta, "trained_on": trained_on, "test_on": name}
             records.append(model_record(label, per_set[name], meta_set))
     variants = [
-        _comparison(model, results[model, SHIFT_ROWS[0]][name], results[model, SHIFT_ROWS[1]][name], name)
+        _comparison(model, results[model, DEFAULT_ROW][name], results[model, VARIANTS_ROW][name], name)
         for model in config.models
-        if (model, SHIFT_ROWS[1]) in results
+        if (model, VARIANTS_ROW) in results
         for name in SHIFT_SETS
     ]
     focus = config.focus
