@@ -22,6 +22,7 @@ from mapless.experiments import load_experiment, train_config
 from mapless.experiments.finished import NoTraining, finished_only
 from mapless.experiments.launch import PlannedRun
 from mapless.experiments.migrate import earlier_run_hashes, migrate, old_run_hash
+from mapless.experiments.pipelines import Row
 from mapless.experiments.runs import run_dir_for
 from mapless.train.config import LAYOUT_CHANGES
 
@@ -176,6 +177,37 @@ def test_no_train_reports_the_finished_runs_and_names_the_others(tmp_path: Path,
     captured = capsys.readouterr()
     assert "would go to" in captured.out and "no trained model has its runs finished" in captured.err
     assert not empty.exists()
+
+
+def test_no_train_reports_each_model_on_its_first_finished_seeds(tmp_path: Path) -> None:
+    config = load_experiment(
+        "table1",
+        "smoke",
+        overrides=[
+            f"runs_dir={tmp_path}",
+            "models=[random,a3c,savn,cvmeta]",
+            "seeds=2",
+            "model_seeds.cvmeta=3",
+        ],
+    )
+
+    def finish(model: str, seed: int) -> None:
+        run = PlannedRun.of(config, model, "all", seed)
+        run.run_dir.mkdir(parents=True)
+        (run.run_dir / "final_model.pt").write_bytes(b"model")
+
+    # a3c: both seeds; savn: seed 2 only (no first seed); cvmeta: seeds 1 and 3, not 2.
+    for model, seed in [("a3c", 1), ("a3c", 2), ("savn", 2), ("cvmeta", 1), ("cvmeta", 3)]:
+        finish(model, seed)
+    lines: list[str] = []
+    narrowed = finished_only(config, lines.append)
+    assert narrowed.models == ("random", "a3c", "cvmeta")
+    assert narrowed.seeds_of("a3c") == 2 and narrowed.seeds_of("cvmeta") == 1
+    assert "cvmeta on 1 of 3 seeds" in lines[-1] and "left out: savn" in lines[-1]
+    # What it reports is exactly what is finished: the launcher finds nothing to train.
+    runs = [run for model in narrowed.models if model != "random" for run in Row(model).runs(narrowed)]
+    assert [(r.config.model.name, r.config.seed) for r in runs] == [("a3c", 1), ("a3c", 2), ("cvmeta", 1)]
+    assert NoTraining().train(runs, lines.append)
 
 
 def test_print_config_names_each_keys_layer_and_runs_nothing(tmp_path: Path, capsys) -> None:

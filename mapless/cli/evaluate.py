@@ -163,8 +163,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     rep.add_argument(
         "--no-train",
         action="store_true",
-        help="train nothing: evaluate and report the finished runs found, leave out the rows whose runs "
-        "are not all finished and name the runs that would have been trained",
+        help="train nothing: evaluate and report the finished runs found, each model on its first seeds "
+        "that are finished (Table 3 and the ablation: leave out the rows not all finished), and name "
+        "the runs that would have been trained",
     )
     rep.add_argument(
         "--print-config",

@@ -1,6 +1,6 @@
 """``mapless reproduce --no-train``: an experiment reported from the runs it finds finished, never
-training one. The rows whose runs are not all finished are left out of the report, and each run
-that would have been trained is named."""
+training one. A model whose first seeds are finished is reported on those seeds; the rows with no
+finished seed are left out of the report, and each run that would have been trained is named."""
 
 from __future__ import annotations
 
@@ -37,12 +37,33 @@ def finished_only(config: ExperimentConfig, log: Callable[[str], None] = print) 
         if not kept:  # an empty list would mean every row
             raise MaplessError("--no-train: no ablation row has its runs finished; nothing to report")
         return dataclasses.replace(config, ablation_rows=kept)
-    dropped = {key[0] if isinstance(key, tuple) else key for key in unfinished}
+    finished_seeds = _finished_seeds(config, rows)
+    dropped = {m for m, count in finished_seeds.items() if count == 0}
     models = tuple(m for m in config.models if m not in dropped)
     if all(m == "random" for m in models):
         raise MaplessError("--no-train: no trained model has its runs finished; nothing to report")
-    log(f"--no-train: reporting {', '.join(models)} (left out: {', '.join(sorted(dropped))})")
-    return dataclasses.replace(config, models=models)
+    fewer = {m: n for m, n in finished_seeds.items() if m in models and n < config.seeds_of(m)}
+    partly = ", ".join(f"{m} on {n} of {config.seeds_of(m)} seeds" for m, n in fewer.items())
+    log(
+        f"--no-train: reporting {', '.join(models)}"
+        + (f" ({partly})" if partly else "")
+        + (f" (left out: {', '.join(sorted(dropped))})" if dropped else "")
+    )
+    return dataclasses.replace(config, models=models, model_seeds={**config.model_seeds, **fewer})
+
+
+def _finished_seeds(config: ExperimentConfig, rows: dict) -> dict[str, int]:
+    """For each trained model, how many of its first seeds are finished in every row it has (seed 3
+    finished without seed 2 counts 1: a report's seeds are always 1..N)."""
+    counts: dict[str, int] = {}
+    for key, row in rows.items():
+        runs = row.runs(config)
+        if not runs:  # random trains nothing
+            continue
+        model = key[0] if isinstance(key, tuple) else key
+        prefix = next((i for i, run in enumerate(runs) if not run.finished), len(runs))
+        counts[model] = min(counts.get(model, prefix), prefix)
+    return counts
 
 
 class NoTraining:
