@@ -10,6 +10,7 @@ import numpy as np
 
 from mapless.config import to_dict
 from mapless.evaluate.metrics import compared_metrics, main_metrics
+from mapless.evaluate.published import PAIRS, published_levels
 from mapless.evaluate.report import (
     ROOM_NAMES,
     details_table,
@@ -83,6 +84,8 @@ def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered
     records = record.models
     lines = _header(record.setting, "Table 1: navigation results on unseen scenes", command)
     lines += [model_table(records), "", *_focus_differences(record.setting.config.focus, records)]
+    beside = _beside_published(records) if record.setting.config.eval.protocol == "reference" else []
+    lines += _published_table(beside)
     lines += _validation_curves(records, out / f"{experiment}_validation.png")
     lines += training_curves(records, out / f"{experiment}_training.png")
     lines += _by_minutes(record)
@@ -91,7 +94,65 @@ def table1(experiment: str, record: Table1, out: Path, command: str) -> Rendered
         lines += [f"Per room type, {rec['model']}:", "", room_table(rec), ""]
     by_minutes = {f"{m:g}": capped for m, capped in record.by_minutes.items()}
     extra = {"by_minutes": by_minutes} if by_minutes else {}
+    if beside:
+        extra["published"] = beside
     return _payload(experiment, record.setting, models=records, **extra), lines
+
+
+def _beside_published(records: list[dict]) -> list[dict]:
+    """Each row that has a published level: its seeds' means, the level, and which figures it reaches."""
+    levels = published_levels()
+    out = []
+    for rec in records:
+        level = levels.get(rec["model"])
+        if level is None:
+            continue
+        means = {name: rec["estimates"][name]["mean"] for name in main_metrics()}
+        out.append(
+            {
+                "model": rec["model"],
+                "seeds": rec["seeds"],
+                "means": means,
+                "published": dict(level.figures),
+                "reached": level.reached(means),
+                "source": level.source,
+            }
+        )
+    return out
+
+
+def _published_table(beside: list[dict]) -> list[str]:
+    """The rows beside their published levels (SR / SPL in %, all episodes and L≥5)."""
+    if not beside:
+        return []
+    levels, rows = published_levels(), []
+    for row in beside:
+        level, means = levels[row["model"]], row["means"]
+        measured = {k: f"{means[a] * 100:.1f} / {means[b] * 100:.1f}" for k, (a, b) in PAIRS.items()}
+        missed = headers([name for name in row["published"] if name not in row["reached"]])
+        verdict = "every figure" if not missed else "missed " + ", ".join(missed)
+        rows.append(
+            [
+                row["model"],
+                str(row["seeds"]),
+                measured["all"],
+                level.pair("all"),
+                measured["l5"],
+                level.pair("l5"),
+                verdict,
+            ]
+        )
+    header = ["model", "seeds", "SR / SPL", "published", "L≥5 SR / SPL", "published L≥5", "reached"]
+    sources = "; ".join(f"{row['model']}: {row['source']}" for row in beside)
+    return [
+        "Beside the published levels (the mean over seeds against each published figure, in %; the "
+        "references measured theirs on their own episodes under the same 1.5 m rule):",
+        "",
+        markdown(header, rows),
+        "",
+        f"Sources: {sources} (mapless/data/published_levels.yaml).",
+        "",
+    ]
 
 
 def _by_minutes(record: Table1) -> list[str]:
