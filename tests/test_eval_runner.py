@@ -254,7 +254,7 @@ def test_bf16_evaluation_is_training_precision_and_float32_up_to_rounding():
 _POOL_THEN_DIE = """
 import multiprocessing, os
 from concurrent.futures import ProcessPoolExecutor
-from mapless.evaluate.runner import exit_with_parent
+from mapless.processes import exit_with_parent
 if __name__ == "__main__":
     watch = {watch}
     init = dict(initializer=exit_with_parent, initargs=(os.getpid(), 0.1)) if watch else {{}}

@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
-import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -40,6 +39,7 @@ from mapless.agent.evaluation import AdaptiveModelAgent, Agent, ModelAgent, Orac
 from mapless.errors import MaplessError
 from mapless.evaluate.metrics import EpisodeResult, sightings
 from mapless.offline import offline_library
+from mapless.processes import exit_with_parent
 from mapless.scenes.catalogue import room_type_of
 from mapless.sim.cache import fingerprint
 from mapless.sim.config import SimConfig
@@ -399,21 +399,6 @@ def _worker(
     start = time.perf_counter()
     results = run_episodes(agent, library, episodes, indices, settings)
     return [r.to_dict() for r in results], _rss_mb(), time.perf_counter() - start
-
-
-def exit_with_parent(parent: int, poll_seconds: float = 1.0, signum: int | None = None) -> None:
-    """Worker initializer: exit when process ``parent`` is gone. A pool's workers otherwise outlive
-    a parent killed without a clean shutdown (SIGTERM, SIGKILL), each holding a scene library.
-    ``signum``: send this process that signal instead (a trainer's SIGTERM: checkpoint, then end)."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(poll_seconds)
-        if signum is None:
-            os._exit(1)
-        os.kill(os.getpid(), signum)
-
-    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
 
 
 def evaluate(

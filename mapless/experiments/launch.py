@@ -29,10 +29,10 @@ from tqdm import tqdm
 
 from mapless import checkpoint as ckpt
 from mapless.errors import MaplessError
-from mapless.evaluate.runner import exit_with_parent
 from mapless.experiments.config import ExperimentConfig, train_config
 from mapless.experiments.runs import RunTally, run_dir_for, train_run
 from mapless.files import write_text
+from mapless.processes import exit_with_parent
 from mapless.provenance import cpu_cores
 
 Log = Callable[[str], None]
