@@ -22,6 +22,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "actions",
         "observations",
         "provenance",
+        "processes",
         "safe_pickle",
         "data",
     ),
