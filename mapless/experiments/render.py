@@ -16,6 +16,7 @@ from mapless.evaluate.report import (
     details_table,
     format_difference,
     format_estimate,
+    format_value,
     headers,
     markdown,
     model_table,
@@ -128,7 +129,9 @@ def _published_table(beside: list[dict]) -> list[str]:
     levels, rows = published_levels(), []
     for row in beside:
         level, means = levels[row["model"]], row["means"]
-        measured = {k: f"{means[a] * 100:.1f} / {means[b] * 100:.1f}" for k, (a, b) in PAIRS.items()}
+        measured = {
+            k: f"{format_value(a, means[a])} / {format_value(b, means[b])}" for k, (a, b) in PAIRS.items()
+        }
         missed = headers([name for name in row["published"] if name not in row["reached"]])
         verdict = "every figure" if not missed else "missed " + ", ".join(missed)
         rows.append(
